@@ -1,0 +1,1050 @@
+"""SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023).
+
+One readable file: DrQ-v2 (DDPG from pixels: random-shift augmentation, n-step returns, clipped
+double-Q, linearly decaying exploration noise) whose image encoder is also trained by two decoders.
+The encoder's latent is split in two halves: one half predicts the robot's binary segmentation
+mask (Eq. 4), the other reconstructs the image (Eq. 5); the total loss is Eq. 6,
+
+    L = L_critic + c1 * L_recon + c2 * L_mask,    c1 = 0.01, c2 = 0.0025.
+
+The baselines of the paper are the same agent with another auxiliary loss (one seam, `AuxLoss`):
+drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit.
+
+Sections, in reading order:
+  1. Config            - a dataclass; the CLI flags are generated from it.
+  2. Networks          - encoders, decoders, actor, critic.
+  3. Augmentation      - random shift, the same shift for image and mask.
+  4. Auxiliary losses  - SEAR and the baselines behind one seam; the METHODS table.
+  5. Agent             - act, update_critic (Eq. 6), update_actor.
+  6. Replay buffer     - frames stored once, masks bit-packed, n-step returns at sampling.
+  7. Run directory     - CSV logs, progress line, atomic snapshots.
+  8. Training loop
+  9. CLI
+
+Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
+        python sear.py --resume runs/<run dir>
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import dataclasses
+import json
+import math
+import os
+import random
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+# ================================================================================================
+# 1. Config
+# ================================================================================================
+def arg(default, doc):
+    """A config field with its one-line doc (shown by --help)."""
+    return field(default=default, metadata={"doc": doc})
+
+
+@dataclass
+class Config:
+    # --- run ---
+    env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
+    method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit")
+    seed: int = arg(1, "seeds python, numpy, torch and the environments")
+    frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action repeat)")
+    device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
+    run_root: str = arg("runs", "folder that holds run directories")
+    resume: str = arg("", "run directory to continue from its last snapshot")
+    save_buffer: bool = arg(False, "also snapshot the replay buffer, so a resumed run loses no data")
+    # --- environment (paper hyper-parameter table) ---
+    action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
+    frame_stack: int = arg(3, "frames stacked into one observation")
+    mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
+    mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
+    backgrounds: str = arg("", "Distracting Control: folder of images or DAVIS JPEGImages/480p ('' = built-in)")
+    difficulty: str = arg("hard", "Distracting Control: easy | medium | hard (number of backgrounds)")
+    render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)")
+    # --- DrQ-v2 (paper hyper-parameter table) ---
+    replay_size: int = arg(250_000, "replay buffer capacity in transitions")
+    seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
+    exploration_steps: int = arg(2000, "agent steps during which the actor also acts uniformly at random")
+    nstep: int = arg(3, "n of the n-step return")
+    batch_size: int = arg(256, "mini-batch size")
+    discount: float = arg(0.99, "discount factor gamma")
+    lr: float = arg(1e-4, "Adam learning rate of actor, critic, encoder and decoders")
+    update_every: int = arg(2, "agent steps between updates")
+    critic_tau: float = arg(0.01, "Polyak rate of the target critic")
+    feature_dim: int = arg(50, "actor/critic trunk width (Linear + LayerNorm + tanh)")
+    latent_dim: int = arg(4096, "encoder latent size (SEAR's pooled encoder); each half is 2048")
+    hidden_dim: int = arg(1024, "actor and critic MLP width")
+    std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
+    std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
+    std_frames: int = arg(500_000, "frames over which the std decays (DrQ-v2's yaml counts 500k agent steps)")
+    std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
+    eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
+    eval_episodes: int = arg(10, "episodes per evaluation, mean action")
+    # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same 4:1 ratio) ---
+    recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (also ae and mae)")
+    mask_coef: float = arg(0.0025, "c2: weight of the mask loss")
+    # --- baselines (each default from its source) ---
+    ae_latent_lambda: float = arg(1e-6, "ae: L2 penalty on the latent (SAC-AE, Yarats et al. 2019)")
+    mae_ratio: float = arg(0.75, "mae: fraction of patches hidden (MAE, He et al. 2022)")
+    mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)")
+    curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder (CURL, Laskin et al. 2020)")
+    curl_dim: int = arg(128, "curl: projection size of query and key")
+    curl_coef: float = arg(1.0, "curl: weight of the contrastive loss (CURL adds it with weight 1)")
+    # --- logging ---
+    log_every: float = arg(10.0, "seconds between progress lines")
+
+
+class ConfigError(ValueError):
+    """Bad user input: reported as one line on stderr."""
+
+
+def validate(cfg: Config) -> None:
+    positive = ["frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
+                "feature_dim", "latent_dim", "hidden_dim", "std_frames", "eval_every",
+                "mae_patch", "curl_dim"]
+    for name in positive:
+        if getattr(cfg, name) <= 0:
+            raise ConfigError(f"--{name.replace('_', '-')} must be > 0, got {getattr(cfg, name)}")
+    for name in ["action_repeat", "seed_frames", "exploration_steps", "eval_episodes", "lr",
+                 "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip"]:
+        if getattr(cfg, name) < 0:
+            raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(cfg, name)}")
+    for name in ["discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio"]:
+        if not 0.0 <= getattr(cfg, name) <= 1.0:
+            raise ConfigError(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(cfg, name)}")
+    if cfg.method not in METHODS:
+        raise ConfigError(f"unknown method '{cfg.method}'; valid: {', '.join(METHODS)}")
+    if cfg.latent_dim % 2:
+        raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
+    if 84 % cfg.mae_patch:
+        raise ConfigError(f"--mae-patch must divide 84, got {cfg.mae_patch}")
+    if cfg.difficulty not in ("easy", "medium", "hard"):
+        raise ConfigError(f"--difficulty must be easy, medium or hard, got '{cfg.difficulty}'")
+    if cfg.render_quality not in ("paper", "fast"):
+        raise ConfigError(f"--render-quality must be paper or fast, got '{cfg.render_quality}'")
+
+
+# ================================================================================================
+# 2. Networks
+# ================================================================================================
+def weight_init(m):
+    """DrQ-v2's init: orthogonal weights, zero biases (ReLU gain for convolutions)."""
+    if isinstance(m, nn.Linear):
+        nn.init.orthogonal_(m.weight.data)
+        if m.bias is not None:
+            m.bias.data.fill_(0.0)
+    elif isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+        nn.init.orthogonal_(m.weight.data, nn.init.calculate_gain("relu"))
+        if m.bias is not None:
+            m.bias.data.fill_(0.0)
+
+
+def conv_trunk(in_channels: int) -> nn.Sequential:
+    """DrQ-v2's four 3x3 convolutions, 32 channels, first with stride 2: 84x84 -> 32x35x35."""
+    return nn.Sequential(
+        nn.Conv2d(in_channels, 32, 3, stride=2), nn.ReLU(),
+        nn.Conv2d(32, 32, 3, stride=1), nn.ReLU(),
+        nn.Conv2d(32, 32, 3, stride=1), nn.ReLU(),
+        nn.Conv2d(32, 32, 3, stride=1), nn.ReLU())
+
+
+class DrQEncoder(nn.Module):
+    """DrQ-v2 as published: the 32x35x35 feature map, flattened (39200), goes into the trunks."""
+
+    def __init__(self, in_channels: int):
+        super().__init__()
+        self.convs = conv_trunk(in_channels)
+        self.repr_dim = 32 * 35 * 35
+        self.apply(weight_init)
+
+    def forward(self, obs):
+        return self.convs(obs / 255.0 - 0.5).flatten(1)
+
+
+class PooledEncoder(nn.Module):
+    """SEAR's encoder (appendix "Architecture"): the same convolutions, then AvgPool(4) to 32x8x8,
+    flatten (2048) and a linear map to the latent (4096) that the decoders read."""
+
+    def __init__(self, in_channels: int, latent_dim: int):
+        super().__init__()
+        self.convs = conv_trunk(in_channels)
+        self.pool = nn.AvgPool2d(4, 4)
+        self.fc = nn.Linear(32 * 8 * 8, latent_dim)
+        self.repr_dim = latent_dim
+        self.apply(weight_init)
+
+    def forward(self, obs):
+        h = self.pool(self.convs(obs / 255.0 - 0.5))
+        return self.fc(h.flatten(1))
+
+
+class Decoder(nn.Module):
+    """The decoder body shared by the mask and the reconstruction heads (appendix "Architecture").
+    8x8 -> 35 (k4 s4, output_padding 3) -> 37 -> 39 -> 41 (k3 s1) -> 84 (k3 s2, output_padding 1)."""
+
+    def __init__(self, in_dim: int, out_channels: int):
+        super().__init__()
+        self.fc = nn.Sequential(nn.Linear(in_dim, 16 * 8 * 8), nn.ReLU())
+        self.deconvs = nn.Sequential(
+            nn.ConvTranspose2d(16, 16, 4, stride=4, output_padding=3), nn.ReLU(),
+            nn.ConvTranspose2d(16, 32, 3, stride=1), nn.ReLU(),
+            nn.ConvTranspose2d(32, 32, 3, stride=1), nn.ReLU(),
+            nn.ConvTranspose2d(32, 32, 3, stride=1), nn.ReLU(),
+            nn.ConvTranspose2d(32, out_channels, 3, stride=2, output_padding=1))
+        self.apply(weight_init)
+
+    def forward(self, z):
+        return self.deconvs(self.fc(z).view(-1, 16, 8, 8))
+
+
+class TruncatedNormal(torch.distributions.Normal):
+    """Normal whose samples are clipped to (-1, 1) with a straight-through gradient (DrQ-v2)."""
+
+    def __init__(self, loc, scale, eps=1e-6):
+        super().__init__(loc, scale, validate_args=False)
+        self.eps = eps
+
+    def sample(self, clip=None):
+        noise = torch.randn_like(self.loc) * self.scale
+        if clip is not None:
+            noise = noise.clamp(-clip, clip)
+        x = self.loc + noise
+        clamped = x.clamp(-1 + self.eps, 1 - self.eps)
+        return x - x.detach() + clamped.detach()
+
+
+def trunk(repr_dim, feature_dim):
+    return nn.Sequential(nn.Linear(repr_dim, feature_dim), nn.LayerNorm(feature_dim), nn.Tanh())
+
+
+def mlp(in_dim, hidden_dim, out_dim):
+    return nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True),
+                         nn.Linear(hidden_dim, hidden_dim), nn.ReLU(inplace=True),
+                         nn.Linear(hidden_dim, out_dim))
+
+
+class Actor(nn.Module):
+    def __init__(self, repr_dim, action_dim, feature_dim, hidden_dim):
+        super().__init__()
+        self.trunk = trunk(repr_dim, feature_dim)
+        self.policy = mlp(feature_dim, hidden_dim, action_dim)
+        self.apply(weight_init)
+
+    def forward(self, latent, std):
+        mu = torch.tanh(self.policy(self.trunk(latent)))
+        return TruncatedNormal(mu, torch.full_like(mu, std))
+
+
+class Critic(nn.Module):
+    """Two Q heads on one trunk; the target is the minimum of the two (clipped double-Q)."""
+
+    def __init__(self, repr_dim, action_dim, feature_dim, hidden_dim):
+        super().__init__()
+        self.trunk = trunk(repr_dim, feature_dim)
+        self.q1 = mlp(feature_dim + action_dim, hidden_dim, 1)
+        self.q2 = mlp(feature_dim + action_dim, hidden_dim, 1)
+        self.apply(weight_init)
+
+    def forward(self, latent, action):
+        h = torch.cat([self.trunk(latent), action], dim=-1)
+        return self.q1(h), self.q2(h)
+
+
+# ================================================================================================
+# 3. Augmentation
+# ================================================================================================
+def random_shift(x: torch.Tensor, pad: int = 4, shift: torch.Tensor | None = None):
+    """DrQ's random shift: replicate-pad by `pad`, then crop back with a per-sample integer shift,
+    done as a bilinear grid sample. Integer shifts land on pixel centres, so a 0/1 mask stays 0/1.
+    SEAR shifts the image stack and its mask stack together by concatenating them along channels:
+    the same shift for both is what makes the mask a label of the image the encoder sees."""
+    n, c, h, w = x.shape
+    assert h == w
+    padded = F.pad(x, (pad,) * 4, mode="replicate")
+    eps = 1.0 / (h + 2 * pad)
+    arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device, dtype=x.dtype)[:h]
+    arange = arange.unsqueeze(0).repeat(h, 1).unsqueeze(2)
+    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0).repeat(n, 1, 1, 1)
+    if shift is None:
+        shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device)
+    grid = base_grid + shift.to(x.dtype) * 2.0 / (h + 2 * pad)
+    return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)
+
+
+def shift_together(obs: torch.Tensor, mask: torch.Tensor):
+    """One random shift per sample, applied identically to the image stack and the mask stack."""
+    both = random_shift(torch.cat([obs, mask], dim=1))
+    return both[:, :obs.shape[1]], both[:, obs.shape[1]:]
+
+
+# ================================================================================================
+# 4. Auxiliary losses: one seam for SEAR and every baseline
+# ================================================================================================
+def summed_mse(pred, target, weight=None):
+    """Squared error summed over channels and pixels, averaged over the batch (Eq. 5). c1 is
+    relative to this sum, not to a per-pixel mean."""
+    err = (pred - target) ** 2
+    if weight is not None:
+        err = err * weight
+    return err.flatten(1).sum(1).mean()
+
+
+def summed_bce(logits, target):
+    """Binary cross-entropy on mask logits, summed over pixels, averaged over the batch (Eq. 4)."""
+    bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+    return bce.flatten(1).sum(1).mean()
+
+
+class AuxLoss(nn.Module):
+    """The seam. An auxiliary loss sees the encoder, the latent of the augmented observation (which
+    also feeds the critic), the un-augmented observation, and the augmented image and mask (same
+    shift). It returns its weighted contribution to Eq. 6 and its unweighted terms for the logs.
+    Its parameters are optimised together with the encoder and the critic."""
+    metric_names: tuple[str, ...] = ()
+
+    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+        raise NotImplementedError
+
+    def after_update(self, encoder):
+        """Called after each optimiser step (CURL updates its momentum encoder here)."""
+
+
+class SearAux(AuxLoss):
+    """SEAR: z_R -> robot mask (Eq. 4), z -> image (Eq. 5). As in the authors' code, the FIRST half
+    of the latent is z (reconstruction) and the SECOND half is z_R (mask). With split=False both
+    decoders read the whole latent (appendix "Auxiliary Mask Loss Without Latent Separation")."""
+    metric_names = ("recon_loss", "mask_loss")
+
+    def __init__(self, cfg: Config, latent_dim: int, split: bool = True):
+        super().__init__()
+        self.split, self.c1, self.c2 = split, cfg.recon_coef, cfg.mask_coef
+        dec_in = latent_dim // 2 if split else latent_dim
+        self.recon_decoder = Decoder(dec_in, 3 * cfg.frame_stack)
+        self.mask_decoder = Decoder(dec_in, cfg.frame_stack)
+
+    def decoder_inputs(self, latent):
+        if not self.split:
+            return latent, latent
+        z, z_r = latent.chunk(2, dim=1)
+        return z, z_r
+
+    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+        z, z_r = self.decoder_inputs(latent)
+        recon_loss = summed_mse(self.recon_decoder(z), obs_aug / 255.0 - 0.5)
+        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
+        loss = self.c1 * recon_loss + self.c2 * mask_loss
+        return loss, {"recon_loss": recon_loss.item(), "mask_loss": mask_loss.item()}
+
+
+class AEAux(AuxLoss):
+    """DrQ-AE (SAC-AE style): one reconstruction decoder on the whole latent, no mask."""
+    metric_names = ("recon_loss",)
+
+    def __init__(self, cfg: Config, latent_dim: int):
+        super().__init__()
+        self.c1, self.latent_lambda = cfg.recon_coef, cfg.ae_latent_lambda
+        self.recon_decoder = Decoder(latent_dim, 3 * cfg.frame_stack)
+
+    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+        recon_loss = summed_mse(self.recon_decoder(latent), obs_aug / 255.0 - 0.5)
+        penalty = 0.5 * latent.pow(2).sum(1).mean()
+        loss = self.c1 * recon_loss + self.latent_lambda * penalty
+        return loss, {"recon_loss": recon_loss.item()}
+
+
+def patch_mask(n, size, patch, ratio, device):
+    """MAE's masking: per sample, hide round(ratio * patches) of the (size/patch)^2 patches, chosen
+    uniformly. Returns a (n, 1, size, size) float map, 1 where hidden."""
+    side = size // patch
+    num, hide = side * side, int(round(ratio * side * side))
+    order = torch.rand(n, num, device=device).argsort(dim=1)
+    hidden = torch.zeros(n, num, device=device)
+    hidden.scatter_(1, order[:, :hide], 1.0)
+    hidden = hidden.view(n, 1, side, side)
+    return hidden.repeat_interleave(patch, dim=2).repeat_interleave(patch, dim=3)
+
+
+class MAEAux(AuxLoss):
+    """DrQ-MAE: hide random patches (the same patches in every stacked frame), encode the masked
+    image, reconstruct the whole stack, and score only the hidden pixels."""
+    metric_names = ("recon_loss",)
+
+    def __init__(self, cfg: Config, latent_dim: int):
+        super().__init__()
+        self.c1, self.ratio, self.patch = cfg.recon_coef, cfg.mae_ratio, cfg.mae_patch
+        self.recon_decoder = Decoder(latent_dim, 3 * cfg.frame_stack)
+
+    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+        hidden = patch_mask(obs_aug.shape[0], obs_aug.shape[-1], self.patch, self.ratio, obs_aug.device)
+        masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
+        pred = self.recon_decoder(encoder(masked))
+        recon_loss = summed_mse(pred, obs_aug / 255.0 - 0.5, weight=hidden)
+        return self.c1 * recon_loss, {"recon_loss": recon_loss.item()}
+
+
+class CURLAux(AuxLoss):
+    """CURL: query = online encoder on the augmented view, key = momentum encoder on a differently
+    shifted view of the same observation; logits q W k^T (B x B), cross-entropy with the positives
+    on the diagonal. A projection (Linear + LayerNorm) keeps W small for the 4096-d latent."""
+    metric_names = ("curl_loss",)
+
+    def __init__(self, cfg: Config, latent_dim: int, encoder: nn.Module):
+        super().__init__()
+        self.coef, self.tau = cfg.curl_coef, cfg.curl_tau
+        self.query_head = nn.Sequential(nn.Linear(latent_dim, cfg.curl_dim), nn.LayerNorm(cfg.curl_dim))
+        self.W = nn.Parameter(torch.rand(cfg.curl_dim, cfg.curl_dim))
+        # The key side is not trained by gradients, only by EMA; keep it out of state the optimiser sees.
+        self.key_encoder = copy.deepcopy(encoder).requires_grad_(False)
+        self.key_head = copy.deepcopy(self.query_head).requires_grad_(False)
+
+    def logits(self, q, k):
+        logits = q @ self.W @ k.T
+        return logits - logits.max(dim=1, keepdim=True).values  # stability, as CURL
+
+    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+        q = self.query_head(latent)
+        with torch.no_grad():
+            k = self.key_head(self.key_encoder(random_shift(obs)))
+        logits = self.logits(q, k)
+        curl_loss = F.cross_entropy(logits, torch.arange(len(q), device=q.device))
+        return self.coef * curl_loss, {"curl_loss": curl_loss.item()}
+
+    @torch.no_grad()
+    def after_update(self, encoder):
+        for online, key in ((encoder, self.key_encoder), (self.query_head, self.key_head)):
+            for p, p_key in zip(online.parameters(), key.parameters()):
+                p_key.lerp_(p, self.tau)
+
+
+@dataclass(frozen=True)
+class Method:
+    encoder: str            # "pooled" (SEAR's) or "drq" (DrQ-v2's)
+    mask_input: bool        # DrQ-RGBM: the mask is a 4th channel of every stacked frame
+    make_aux: object        # (cfg, latent_dim, encoder) -> AuxLoss | None
+    doc: str
+
+
+METHODS = {
+    "sear": Method("pooled", False, lambda c, d, e: SearAux(c, d, split=True), "SEAR: latent split, mask + recon"),
+    "drq": Method("drq", False, lambda c, d, e: None, "DrQ-v2 as published"),
+    "ae": Method("pooled", False, lambda c, d, e: AEAux(c, d), "DrQ-AE: one decoder on the whole latent"),
+    "mae": Method("pooled", False, lambda c, d, e: MAEAux(c, d), "DrQ-MAE: reconstruct hidden patches"),
+    "curl": Method("pooled", False, lambda c, d, e: CURLAux(c, d, e), "CURL: contrastive, momentum key"),
+    "rgbm": Method("drq", True, lambda c, d, e: None, "DrQ-RGBM: mask appended to the input"),
+    "sear-nosplit": Method("pooled", False, lambda c, d, e: SearAux(c, d, split=False),
+                           "SEAR without latent split"),
+}
+
+
+# ================================================================================================
+# 5. Agent
+# ================================================================================================
+def linear_std(cfg: Config, frame: int) -> float:
+    mix = min(max(frame / cfg.std_frames, 0.0), 1.0)
+    return (1.0 - mix) * cfg.std_start + mix * cfg.std_end
+
+
+class Agent:
+    def __init__(self, cfg: Config, action_dim: int, device: torch.device):
+        self.cfg, self.device, self.action_dim = cfg, device, action_dim
+        self.method = METHODS[cfg.method]
+        in_channels = (4 if self.method.mask_input else 3) * cfg.frame_stack
+        if self.method.encoder == "pooled":
+            self.encoder = PooledEncoder(in_channels, cfg.latent_dim).to(device)
+        else:
+            self.encoder = DrQEncoder(in_channels).to(device)
+        repr_dim = self.encoder.repr_dim
+        self.actor = Actor(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
+        self.critic = Critic(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.aux = self.method.make_aux(cfg, repr_dim, self.encoder)
+        if self.aux is not None:
+            self.aux.to(device)
+        # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one
+        # optimiser for all of them equals DrQ-v2's separate encoder/critic optimisers.
+        model_params = [*self.encoder.parameters(), *self.critic.parameters()]
+        if self.aux is not None:
+            model_params += [p for p in self.aux.parameters() if p.requires_grad]
+        self.model_opt = torch.optim.Adam(model_params, lr=cfg.lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
+        self.metric_names = ("critic_loss", "actor_loss", "q") + (self.aux.metric_names if self.aux else ())
+
+    # --- inputs ---
+    def encoder_input(self, pixels: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """The encoder's input: the RGB stack, or for RGBM each frame's RGB followed by its mask."""
+        if not self.method.mask_input:
+            return pixels
+        if mask is None:
+            raise ValueError("method rgbm needs the robot mask when acting: pass mask=obs['mask']")
+        n, c, h, w = pixels.shape
+        rgb = pixels.view(n, c // 3, 3, h, w)
+        m = (mask.to(pixels.dtype) * 255.0).view(n, c // 3, 1, h, w)
+        return torch.cat([rgb, m], dim=2).view(n, -1, h, w)
+
+    @torch.no_grad()
+    def act(self, pixels: np.ndarray, mask: np.ndarray | None, frame: int, eval_mode: bool):
+        step = frame // max(1, self.cfg.action_repeat)
+        obs = torch.as_tensor(pixels, device=self.device).float().unsqueeze(0)
+        m = None if mask is None else torch.as_tensor(mask, device=self.device).float().unsqueeze(0)
+        latent = self.encoder(self.encoder_input(obs, m))
+        dist = self.actor(latent, linear_std(self.cfg, frame))
+        if eval_mode:
+            action = dist.mean
+        else:
+            action = dist.sample(clip=None)
+            if step < self.cfg.exploration_steps:
+                action.uniform_(-1.0, 1.0)
+        return action.squeeze(0).cpu().numpy().astype(np.float32)
+
+    # --- updates ---
+    def joint_loss(self, obs, mask, action, reward, discount, next_obs, frame):
+        """Eq. 6: the critic's TD loss plus the auxiliary loss (c1 * recon + c2 * mask for SEAR).
+        Returns the loss, the latent of the augmented observation, and the terms for the logs."""
+        obs_aug, mask_aug = shift_together(obs, mask)
+        latent = self.encoder(obs_aug)
+        with torch.no_grad():
+            next_latent = self.encoder(random_shift(next_obs))
+            dist = self.actor(next_latent, linear_std(self.cfg, frame))
+            next_action = dist.sample(clip=self.cfg.std_clip)
+            target_q = torch.min(*self.critic_target(next_latent, next_action))
+            target_q = reward + discount * target_q
+        q1, q2 = self.critic(latent, action)
+        critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
+        loss, metrics = critic_loss, {}
+        if self.aux is not None:
+            aux_loss, metrics = self.aux(self.encoder, latent, obs, obs_aug, mask_aug)
+            loss = loss + aux_loss
+        metrics.update(critic_loss=critic_loss.item(), q=q1.mean().item())
+        return loss, latent, metrics
+
+    def update_critic(self, obs, mask, action, reward, discount, next_obs, frame):
+        """One joint step on encoder, critic and decoders (Alg. 1)."""
+        loss, latent, metrics = self.joint_loss(obs, mask, action, reward, discount, next_obs, frame)
+        self.model_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.model_opt.step()
+        if self.aux is not None:
+            self.aux.after_update(self.encoder)
+        return latent.detach(), metrics
+
+    def update_actor(self, latent, frame):
+        """DDPG actor loss. `latent` is detached: the actor's loss never reaches the encoder."""
+        dist = self.actor(latent, linear_std(self.cfg, frame))
+        action = dist.sample(clip=self.cfg.std_clip)
+        actor_loss = -torch.min(*self.critic(latent, action)).mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_opt.step()
+        return {"actor_loss": actor_loss.item()}
+
+    def update(self, batch, frame):
+        obs, mask, action, reward, discount, next_obs, next_mask = (
+            torch.as_tensor(x, device=self.device) for x in batch)
+        obs, mask, next_mask = obs.float(), mask.float(), next_mask.float()
+        obs = self.encoder_input(obs, mask)
+        next_obs = self.encoder_input(next_obs.float(), next_mask)
+        latent, metrics = self.update_critic(obs, mask, action, reward, discount, next_obs, frame)
+        metrics.update(self.update_actor(latent, frame))
+        with torch.no_grad():  # Polyak averaging of the target critic
+            for p, p_t in zip(self.critic.parameters(), self.critic_target.parameters()):
+                p_t.lerp_(p, self.cfg.critic_tau)
+        return metrics
+
+    def state_dict(self):
+        return {"encoder": self.encoder.state_dict(), "actor": self.actor.state_dict(),
+                "critic": self.critic.state_dict(), "critic_target": self.critic_target.state_dict(),
+                "aux": self.aux.state_dict() if self.aux is not None else None,
+                "model_opt": self.model_opt.state_dict(), "actor_opt": self.actor_opt.state_dict()}
+
+    def load_state_dict(self, state):
+        for name in ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt"):
+            getattr(self, name).load_state_dict(state[name])
+        if self.aux is not None:
+            self.aux.load_state_dict(state["aux"])
+
+
+# ================================================================================================
+# 6. Replay buffer
+# ================================================================================================
+class ReplayBuffer:
+    """A ring of time steps. Slot i holds the newest RGB frame of step i (uint8, stored once), its
+    robot mask bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led to it,
+    whether it is terminal, and whether it starts an episode. Frame stacks are rebuilt at sampling
+    time, never across an episode start (the first frame repeats, as at reset), and n-step returns
+    are summed at sampling. A time-limit end (truncation) bootstraps; a termination does not."""
+
+    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount):
+        self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
+        self.frame_shape = tuple(frame_shape)  # (3, H, W)
+        h, w = frame_shape[1:]
+        self.mask_bytes = (h * w + 7) // 8
+        self.frames = np.empty((capacity, *frame_shape), dtype=np.uint8)
+        self.masks = np.empty((capacity, self.mask_bytes), dtype=np.uint8)
+        self.actions = np.empty((capacity, action_dim), dtype=np.float32)
+        self.rewards = np.empty((capacity,), dtype=np.float32)
+        self.terminal = np.empty((capacity,), dtype=bool)
+        self.first = np.empty((capacity,), dtype=bool)
+        self.t = 0  # slots ever written; slot of time step l is l % capacity
+
+    @property
+    def bytes_per_transition(self):
+        return sum(a.itemsize * int(np.prod(a.shape[1:])) for a in
+                   (self.frames, self.masks, self.actions, self.rewards, self.terminal, self.first))
+
+    def __len__(self):
+        return min(self.t, self.capacity)
+
+    def _write(self, obs, action, reward, terminal, first):
+        i = self.t % self.capacity
+        self.frames[i] = obs["pixels"][-3:]
+        self.masks[i] = np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1))
+        self.actions[i] = action
+        self.rewards[i] = reward
+        self.terminal[i] = terminal
+        self.first[i] = first
+        self.t += 1
+
+    def add_first(self, obs):
+        """The observation returned by reset()."""
+        self._write(obs, 0.0, 0.0, False, True)
+
+    def add(self, action, reward, terminated, obs):
+        """One env.step(): the action taken, the reward it earned, and the observation it led to."""
+        self._write(obs, action, reward, terminated, False)
+
+    # --- sampling ---
+    def _stack_indices(self, l):
+        """Time indices of the frames stacked at time l: walk back, but never past an episode
+        start or the oldest slot still in the ring (the frame there is repeated instead)."""
+        oldest = max(0, self.t - self.capacity)
+        idx = [l]
+        cur = l.copy()
+        for _ in range(self.stack - 1):
+            stop = self.first[cur % self.capacity] | (cur <= oldest)
+            cur = np.where(stop, cur, cur - 1)
+            idx.append(cur.copy())
+        return np.stack(idx[::-1], axis=1)  # oldest frame first
+
+    def _obs(self, l):
+        idx = self._stack_indices(l) % self.capacity  # (B, stack)
+        b = len(l)
+        pixels = self.frames[idx].reshape(b, -1, *self.frame_shape[1:])
+        bits = np.unpackbits(self.masks[idx], axis=-1)[..., :int(np.prod(self.frame_shape[1:]))]
+        masks = bits.reshape(b, self.stack, *self.frame_shape[1:])
+        return pixels, masks
+
+    def can_sample(self):
+        return self.t - max(0, self.t - self.capacity) > self.nstep + 1
+
+    def sample(self, batch_size, rng: np.random.Generator):
+        lo, hi = max(0, self.t - self.capacity), self.t - 1 - self.nstep
+        l = rng.integers(lo, hi + 1, size=batch_size)
+        bad = self.first[(l + 1) % self.capacity]
+        while bad.any():  # rejection keeps sampling uniform over valid starts without listing them
+            l[bad] = rng.integers(lo, hi + 1, size=int(bad.sum()))
+            bad = self.first[(l + 1) % self.capacity]
+        return self.transitions(l)
+
+    def transitions(self, l):
+        """n-step transitions starting at times l: (obs, mask, action, R, bootstrap discount,
+        next_obs, next_mask), with R = sum_k gamma^(k-1) r_(l+k) up to n steps or the episode's end,
+        and bootstrap discount gamma^m, zero if the episode terminated at step l + m."""
+        l = np.asarray(l, dtype=np.int64)
+        ret = np.zeros(len(l), dtype=np.float32)
+        gamma_m = np.ones(len(l), dtype=np.float32)
+        last = l.copy()  # time of the bootstrap observation
+        alive = np.ones(len(l), dtype=bool)  # still inside the episode
+        for k in range(1, self.nstep + 1):
+            j = (l + k) % self.capacity
+            alive &= ~self.first[j]
+            ret += np.where(alive, gamma_m * self.rewards[j], 0.0).astype(np.float32)
+            gamma_m = np.where(alive, gamma_m * self.discount, gamma_m).astype(np.float32)
+            last = np.where(alive, l + k, last)
+        # A terminal step is always followed by a reset, so the walk above stops there too; only
+        # the bootstrap differs: none after a termination, gamma^m after a time-limit truncation.
+        discount = np.where(self.terminal[last % self.capacity], 0.0, gamma_m).astype(np.float32)
+        obs, mask = self._obs(l)
+        next_obs, next_mask = self._obs(last)
+        action = self.actions[(l + 1) % self.capacity]
+        return obs, mask, action, ret[:, None], discount[:, None], next_obs, next_mask
+
+    # --- persistence ---
+    def save(self, path):
+        n = len(self)
+        tmp = path + ".tmp.npz"
+        np.savez(tmp, t=self.t, frames=self.frames[:n], masks=self.masks[:n], actions=self.actions[:n],
+                 rewards=self.rewards[:n], terminal=self.terminal[:n], first=self.first[:n])
+        os.replace(tmp, path)
+
+    def load(self, path):
+        with np.load(path) as data:
+            n = len(data["rewards"])
+            if n > self.capacity:
+                raise ConfigError(f"saved buffer holds {n} transitions, more than --replay-size {self.capacity}")
+            for name in ("frames", "masks", "actions", "rewards", "terminal", "first"):
+                getattr(self, name)[:n] = data[name]
+            self.t = int(data["t"])  # a wrapped ring is saved in physical order: same slots here
+
+
+# ================================================================================================
+# 7. Run directory: logs, progress, snapshots
+# ================================================================================================
+class CsvLog:
+    """Rows appended to a CSV whose header is fixed by the first row."""
+
+    def __init__(self, path):
+        self.path, self.fields = path, None
+        if os.path.exists(path):
+            with open(path, newline="") as f:
+                self.fields = next(csv.reader(f), None)
+
+    def write(self, row: dict):
+        if self.fields is None:
+            self.fields = list(row)
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self.fields)
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
+
+
+def set_aside_rows_after(path, frame):
+    """On resume, rows logged after the snapshot describe steps that will be re-run. Keep them, in
+    a side file, and leave the main CSV consistent with the snapshot."""
+    if not os.path.exists(path):
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if len(rows) < 2:
+        return
+    header, body = rows[0], rows[1:]
+    col = header.index("frame")
+    keep = [r for r in body if int(r[col]) <= frame]
+    later = [r for r in body if int(r[col]) > frame]
+    if not later:
+        return
+    side = f"{path[:-4]}.after_snapshot_{time.strftime('%Y%m%d-%H%M%S')}.csv"
+    with open(side, "w", newline="") as f:
+        csv.writer(f).writerows([header, *later])
+    tmp = path + ".tmp"
+    with open(tmp, "w", newline="") as f:
+        csv.writer(f).writerows([header, *keep])
+    os.replace(tmp, path)
+
+
+def new_run_dir(cfg: Config) -> str:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    base = os.path.join(cfg.run_root, f"{cfg.env}__{cfg.method}__{cfg.seed}__{stamp}")
+    path, k = base, 1
+    while os.path.exists(path):  # never reuse (and so never overwrite) an existing run
+        path, k = f"{base}-{k}", k + 1
+    os.makedirs(path)
+    return path
+
+
+def rng_state():
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
+
+
+def set_rng_state(state):
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if state["cuda"] is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def save_snapshot(run_dir, payload):
+    """Write snapshot.pt atomically: a crash mid-write leaves the previous snapshot intact."""
+    path = os.path.join(run_dir, "snapshot.pt")
+    tmp = path + ".tmp"
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_snapshot(run_dir):
+    path = os.path.join(run_dir, "snapshot.pt")
+    if not os.path.isdir(run_dir):
+        raise ConfigError(f"--resume: no such run directory '{run_dir}'")
+    if not os.path.exists(path):
+        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (a snapshot is written at every eval)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # corrupt or foreign file: say so in one line
+        raise ConfigError(f"--resume: cannot read '{path}': {type(e).__name__}: {str(e).splitlines()[0][:200]}")
+
+
+class Progress:
+    """A live line with frames/s and ETA: rewritten in place on a terminal, printed every
+    `every` seconds otherwise (CI logs, nohup)."""
+
+    def __init__(self, total, every):
+        self.total, self.every, self.last = total, every, 0.0
+        self.tty = sys.stdout.isatty()
+
+    def update(self, frame, fps, text, force=False):
+        now = time.time()
+        if not force and now - self.last < self.every:
+            return
+        self.last = now
+        eta = (self.total - frame) / fps if fps > 0 else float("inf")
+        eta_s = "?" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
+        if eta > 86400 and math.isfinite(eta):
+            eta_s = f"{eta / 86400:.1f}d"
+        line = f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {fps:.1f} fps | ETA {eta_s} | {text}"
+        print(("\r" + line.ljust(120)) if self.tty else line, end="" if self.tty else "\n", flush=True)
+
+
+def tensorboard_writer(run_dir):
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+        return SummaryWriter(run_dir)
+    except Exception:  # tensorboard not installed: CSVs only
+        return None
+
+
+# ================================================================================================
+# 8. Training loop
+# ================================================================================================
+def pick_device(name):
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"--device: unknown device '{name}'")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
+def episode_seed(seed, episode):
+    """Each episode's reset seed: backgrounds, task variation and noise are reproducible, and a
+    resumed run continues with the episodes an uninterrupted run would have had."""
+    return seed * 1_000_003 + episode
+
+
+def make_envs(cfg: Config):
+    import envs  # imported here so that `--help` and config errors need no MuJoCo
+    kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat, mask_noise=cfg.mask_noise,
+                  mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
+                  difficulty=cfg.difficulty, render_quality=cfg.render_quality)
+    try:
+        train_env = envs.make_env(cfg.env, seed=cfg.seed, split="train", **kwargs)
+        eval_env = envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", **kwargs)
+    except envs.EnvError as e:
+        raise ConfigError(str(e))
+    return train_env, eval_env
+
+
+def evaluate(agent, env, cfg: Config, frame):
+    """Mean action, separately seeded env; the same reset seeds at every eval make evals comparable."""
+    returns, successes = [], []
+    for i in range(cfg.eval_episodes):
+        obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i))
+        done, ret, success = False, 0.0, False
+        while not done:
+            action = agent.act(obs["pixels"], obs["mask"], frame, eval_mode=True)
+            obs, reward, terminated, truncated, info = env.step(action)
+            ret += reward
+            success = success or bool(info.get("success", False))
+            done = terminated or truncated
+        returns.append(ret)
+        if "success" in info:
+            successes.append(float(success))
+    return float(np.mean(returns)), (float(np.mean(successes)) if successes else None)
+
+
+def train(cfg: Config):
+    resume_state = None
+    if cfg.resume:
+        resume_state = load_snapshot(cfg.resume)
+        run_dir = cfg.resume
+    device = pick_device(cfg.device)
+    train_env, eval_env = make_envs(cfg)
+    if cfg.action_repeat == 0:
+        import envs
+        cfg.action_repeat = envs.default_action_repeat(cfg.env)
+    if not cfg.resume:
+        run_dir = new_run_dir(cfg)
+        with open(os.path.join(run_dir, "config.json"), "w") as f:
+            json.dump(dataclasses.asdict(cfg), f, indent=2)
+
+    random.seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    sample_rng = np.random.default_rng(cfg.seed)
+
+    action_dim = train_env.action_space.shape[0]
+    agent = Agent(cfg, action_dim, device)
+    pixel_shape = train_env.observation_space["pixels"].shape
+    buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
+                          cfg.nstep, cfg.discount)
+    print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
+          f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
+          f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
+
+    step, episode, next_eval, wall_offset = 0, 0, 0, 0.0
+    if resume_state is not None:
+        agent.load_state_dict(resume_state["agent"])
+        set_rng_state(resume_state["rng"])
+        sample_rng.bit_generator.state = resume_state["sample_rng"]
+        c = resume_state["counters"]
+        step, episode, next_eval, wall_offset = c["step"], c["episode"] + 1, c["next_eval"], c["wall_time"]
+        buffer_path = os.path.join(run_dir, "buffer.npz")
+        if os.path.exists(buffer_path) and resume_state.get("buffer_saved"):
+            buffer.load(buffer_path)
+        else:
+            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
+        for name in ("train.csv", "eval.csv"):
+            set_aside_rows_after(os.path.join(run_dir, name), step * cfg.action_repeat)
+        print(f"resumed at frame {step * cfg.action_repeat}, episode {episode}")
+
+    train_log = CsvLog(os.path.join(run_dir, "train.csv"))
+    eval_log = CsvLog(os.path.join(run_dir, "eval.csv"))
+    writer = tensorboard_writer(run_dir)
+    progress = Progress(cfg.frames, cfg.log_every)
+    start = time.time() - wall_offset
+    frame = step * cfg.action_repeat
+    last_frame_time, last_frame = time.time(), frame
+
+    def snapshot():
+        payload = {"config": dataclasses.asdict(cfg), "agent": agent.state_dict(), "rng": rng_state(),
+                   "sample_rng": sample_rng.bit_generator.state, "buffer_saved": cfg.save_buffer,
+                   "counters": {"step": step, "episode": episode, "next_eval": next_eval,
+                                "wall_time": time.time() - start}}
+        if cfg.save_buffer:
+            buffer.save(os.path.join(run_dir, "buffer.npz"))
+        save_snapshot(run_dir, payload)
+
+    obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
+    buffer.add_first(obs)
+    ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
+    while frame < cfg.frames:
+        if frame >= next_eval:
+            eval_return, eval_success = evaluate(agent, eval_env, cfg, frame)
+            row = {"frame": frame, "step": step, "episode": episode, "return": eval_return,
+                   "wall_time": round(time.time() - start, 2)}
+            if eval_success is not None:
+                row["success"] = eval_success
+            eval_log.write(row)
+            if writer:
+                writer.add_scalar("eval/return", eval_return, frame)
+            print(("\n" if progress.tty else "") + f"eval @ frame {frame}: return {eval_return:.1f}"
+                  + (f", success {eval_success:.2f}" if eval_success is not None else ""))
+            next_eval += cfg.eval_every
+            snapshot()
+
+        if frame < cfg.seed_frames:
+            action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
+        else:
+            action = agent.act(obs["pixels"], obs["mask"], frame, eval_mode=False)
+        if frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample():
+            metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), frame)
+            for k, v in metrics.items():
+                ep_metrics.setdefault(k, []).append(v)
+
+        obs, reward, terminated, truncated, info = train_env.step(action)
+        buffer.add(action, reward, terminated, obs)
+        step += 1
+        frame = step * cfg.action_repeat
+        ep_return += reward
+        ep_len += 1
+        ep_success = ep_success or bool(info.get("success", False))
+
+        fps = (frame - last_frame) / max(time.time() - last_frame_time, 1e-9)
+        if terminated or truncated:
+            row = {"frame": frame, "step": step, "episode": episode, "return": ep_return, "length": ep_len}
+            if "success" in info:
+                row["success"] = float(ep_success)
+            row.update({k: (float(np.mean(ep_metrics[k])) if k in ep_metrics else "") for k in agent.metric_names})
+            row.update({"fps": round(fps, 2), "wall_time": round(time.time() - start, 2)})
+            train_log.write(row)
+            if writer:
+                writer.add_scalar("train/return", ep_return, frame)
+                for k in ep_metrics:
+                    writer.add_scalar(f"train/{k}", float(np.mean(ep_metrics[k])), frame)
+            progress.update(frame, fps, f"ep {episode} return {ep_return:.1f}", force=True)
+            last_frame_time, last_frame = time.time(), frame
+            episode += 1
+            obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
+            buffer.add_first(obs)
+            ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
+        else:
+            progress.update(frame, fps, f"ep {episode} step {ep_len}")
+
+    snapshot()
+    if progress.tty:
+        print()
+    print(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
+    train_env.close()
+    eval_env.close()
+    if writer:
+        writer.close()
+    return run_dir
+
+
+# ================================================================================================
+# 9. CLI
+# ================================================================================================
+class OneLineParser(argparse.ArgumentParser):
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+RESUME_MAY_CHANGE = {"frames", "device", "save_buffer", "log_every", "resume"}
+
+
+def parse_args(argv=None) -> Config:
+    parser = OneLineParser(prog="sear.py", description=__doc__.split("\n\n")[0])
+    defaults = Config()
+    for f in dataclasses.fields(Config):
+        flag = "--" + f.name.replace("_", "-")
+        help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})"
+        if f.type in ("bool", bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
+                                help=help_text)
+        else:
+            typ = {"int": int, "float": float, "str": str}[f.type if isinstance(f.type, str) else f.type.__name__]
+            parser.add_argument(flag, type=typ, default=argparse.SUPPRESS, help=help_text,
+                                choices=list(METHODS) if f.name == "method" else None)
+    given = vars(parser.parse_args(argv))
+    if given.get("resume"):
+        state = load_snapshot(given["resume"])
+        saved = state["config"]
+        for k, v in given.items():
+            if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
+                raise ConfigError(f"--{k.replace('_', '-')} cannot change on --resume "
+                                  f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
+        cfg = Config(**{**saved, **given})
+    else:
+        cfg = Config(**given)
+    validate(cfg)
+    return cfg
+
+
+def main(argv=None):
+    try:
+        cfg = parse_args(argv)
+        train(cfg)
+    except ConfigError as e:
+        print(f"sear.py: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\ninterrupted: the last snapshot is intact; continue with --resume RUN_DIR", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

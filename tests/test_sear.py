@@ -1,0 +1,243 @@
+"""Unit tests of sear.py's pieces: networks, losses (Eq. 4-6), augmentation, replay buffer."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import sear
+
+
+def small_cfg(**kw):
+    base = dict(latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=4, frame_stack=3,
+                action_repeat=2)
+    base.update(kw)
+    return sear.Config(**base)
+
+
+def fake_batch(n=4, stack=3, action_dim=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randint(0, 256, (n, 3 * stack, 84, 84), generator=g).float()
+    mask = (torch.rand(n, stack, 84, 84, generator=g) > 0.7).float()
+    action = torch.rand(n, action_dim, generator=g) * 2 - 1
+    reward = torch.rand(n, 1, generator=g)
+    discount = torch.full((n, 1), 0.99)
+    next_obs = torch.randint(0, 256, (n, 3 * stack, 84, 84), generator=g).float()
+    return obs, mask, action, reward, discount, next_obs
+
+
+# ---------------------------------------------------------------- networks
+def test_encoder_shapes():
+    x = torch.rand(2, 9, 84, 84) * 255
+    enc = sear.PooledEncoder(9, 4096)
+    assert enc.convs(x).shape == (2, 32, 35, 35)
+    assert enc.pool(enc.convs(x)).shape == (2, 32, 8, 8)
+    assert enc(x).shape == (2, 4096)
+    assert sear.DrQEncoder(9)(x).shape == (2, 32 * 35 * 35)
+
+
+@pytest.mark.parametrize("out_channels", [9, 3])
+def test_decoders_return_exactly_84x84(out_channels):
+    dec = sear.Decoder(2048, out_channels)
+    assert dec(torch.randn(2, 2048)).shape == (2, out_channels, 84, 84)
+
+
+# ---------------------------------------------------------------- losses
+def test_mask_loss_equals_hand_computed_bce():
+    logits = torch.tensor([[[[2.0, -1.0], [0.5, 0.0]]], [[[-3.0, 1.0], [0.0, 4.0]]]])
+    target = torch.tensor([[[[1.0, 0.0], [0.0, 1.0]]], [[[0.0, 1.0], [1.0, 1.0]]]])
+    per_sample = []
+    for lg, tg in zip(logits.flatten(1).tolist(), target.flatten(1).tolist()):
+        s = 0.0
+        for x, t in zip(lg, tg):
+            p = 1 / (1 + math.exp(-x))
+            s += -(t * math.log(p) + (1 - t) * math.log(1 - p))
+        per_sample.append(s)
+    expected = sum(per_sample) / len(per_sample)  # summed over pixels, averaged over the batch
+    assert sear.summed_bce(logits, target).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_recon_loss_zero_for_perfect_reconstruction():
+    cfg = small_cfg()
+    aux = sear.SearAux(cfg, cfg.latent_dim)
+    obs, mask = fake_batch()[:2]
+
+    class Perfect(torch.nn.Module):
+        def forward(self, z):
+            return obs / 255.0 - 0.5
+
+    aux.recon_decoder = Perfect()
+    _, metrics = aux(None, torch.randn(4, cfg.latent_dim), obs, obs, mask)
+    assert metrics["recon_loss"] == 0.0
+    assert sear.summed_mse(obs, obs + 1.0).item() == pytest.approx(9 * 84 * 84)  # summed, not averaged
+
+
+def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask():
+    cfg = small_cfg(recon_coef=0.5, mask_coef=0.25)
+    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    obs, mask, action, reward, discount, next_obs = fake_batch()
+    torch.manual_seed(0)
+    loss, latent, m = agent.joint_loss(obs, mask, action, reward, discount, next_obs, frame=0)
+    expected = m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    assert m["recon_loss"] > 0 and m["mask_loss"] > 0
+
+
+def test_paper_defaults():
+    cfg = sear.Config()
+    assert (cfg.recon_coef, cfg.mask_coef) == (0.01, 0.0025)
+    assert (cfg.batch_size, cfg.nstep, cfg.latent_dim, cfg.feature_dim, cfg.hidden_dim) == (256, 3, 4096, 50, 1024)
+    assert (cfg.replay_size, cfg.seed_frames, cfg.critic_tau, cfg.lr) == (250_000, 4000, 0.01, 1e-4)
+
+
+def test_actor_loss_does_not_reach_encoder():
+    cfg = small_cfg()
+    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    obs, mask, action, reward, discount, next_obs = fake_batch()
+    latent, _ = agent.update_critic(obs, mask, action, reward, discount, next_obs, frame=0)
+    agent.model_opt.zero_grad(set_to_none=True)
+    agent.update_actor(latent, frame=0)
+    assert all(p.grad is None for p in agent.encoder.parameters())
+    assert any(p.grad is not None for p in agent.actor.parameters())
+
+
+def test_critic_and_aux_losses_reach_encoder():
+    cfg = small_cfg()
+    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    before = [p.detach().clone() for p in agent.encoder.parameters()]
+    agent.update_critic(*fake_batch(), frame=0)
+    assert any(not torch.equal(b, p) for b, p in zip(before, agent.encoder.parameters()))
+
+
+def test_exploration_std_schedule():
+    cfg = sear.Config()
+    assert sear.linear_std(cfg, 0) == pytest.approx(1.0)
+    assert sear.linear_std(cfg, 250_000) == pytest.approx(0.55)
+    assert sear.linear_std(cfg, 10**7) == pytest.approx(0.1)
+
+
+# ---------------------------------------------------------------- augmentation
+def test_random_shift_is_an_integer_translation_of_the_padded_image():
+    x = torch.rand(2, 3, 84, 84)
+    shift = torch.tensor([[[[3, 7]]], [[[0, 8]]]])  # (dx, dy) per sample
+    out = sear.random_shift(x, pad=4, shift=shift)
+    padded = torch.nn.functional.pad(x, (4,) * 4, mode="replicate")
+    for i, (dx, dy) in enumerate([(3, 7), (0, 8)]):
+        torch.testing.assert_close(out[i], padded[i, :, dy:dy + 84, dx:dx + 84], atol=1e-5, rtol=0)
+
+
+def test_same_shift_moves_image_and_mask_identically():
+    torch.manual_seed(0)
+    obs = torch.randint(0, 256, (8, 9, 84, 84)).float()
+    mask = (obs[:, [0, 3, 6]] > 127).float()  # a mask that is a function of the image
+    obs_aug, mask_aug = sear.shift_together(obs, mask)
+    assert not torch.equal(obs_aug, obs)
+    assert torch.equal(mask_aug.round(), (obs_aug[:, [0, 3, 6]].round() > 127).float())
+    assert torch.allclose(mask_aug, mask_aug.round(), atol=1e-4)  # still binary
+
+
+# ---------------------------------------------------------------- replay buffer
+def make_obs(time_id, episode, stack=3, terminal=False):
+    """A fake observation whose newest frame encodes (time, episode) in its pixels."""
+    frame = np.zeros((3, 84, 84), dtype=np.uint8)
+    frame[0] = time_id % 256
+    frame[1] = episode % 256
+    mask = np.zeros((stack, 84, 84), dtype=np.uint8)
+    mask[-1, : (time_id % 80) + 1, 0] = 1  # mask content also identifies the time
+    return {"pixels": np.concatenate([np.zeros((3 * (stack - 1), 84, 84), np.uint8), frame]), "mask": mask}
+
+
+def fill(buffer, episodes, action_dim=2):
+    """episodes: list of (rewards, terminated). Returns per-time records [(episode, reward, first, term)]."""
+    log, t = [], 0
+    for e, (rewards, terminated) in enumerate(episodes):
+        buffer.add_first(make_obs(t, e))
+        log.append((e, 0.0, True, False))
+        t += 1
+        for k, r in enumerate(rewards):
+            term = terminated and k == len(rewards) - 1
+            buffer.add(np.full(action_dim, t / 1000, np.float32), r, term, make_obs(t, e))
+            log.append((e, r, False, term))
+            t += 1
+    return log
+
+
+def brute_force(log, l, n, gamma):
+    ret, g, last = 0.0, 1.0, l
+    for k in range(1, n + 1):
+        if l + k >= len(log) or log[l + k][2]:
+            break
+        ret += g * log[l + k][1]
+        g *= gamma
+        last = l + k
+        if log[l + k][3]:
+            return ret, 0.0, last
+    return ret, g, last
+
+
+def test_nstep_returns_match_brute_force_and_termination_vs_truncation():
+    rng = np.random.default_rng(0)
+    episodes = [(list(rng.normal(size=L)), term) for L, term in [(7, False), (2, True), (5, True), (1, False), (9, False)]]
+    buf = sear.ReplayBuffer(1000, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.9)
+    log = fill(buf, episodes)
+    starts = [l for l in range(len(log) - 1 - 3) if not log[l + 1][2]]
+    obs, mask, action, ret, disc, next_obs, next_mask = buf.transitions(np.array(starts))
+    for i, l in enumerate(starts):
+        r, g, last = brute_force(log, l, 3, 0.9)
+        assert ret[i, 0] == pytest.approx(r, abs=1e-5)
+        assert disc[i, 0] == pytest.approx(g, abs=1e-6)
+        assert next_obs[i, -3] .flat[0] == last % 256  # newest frame of next_obs is time `last`
+        assert action[i, 0] == pytest.approx((l + 1) / 1000)
+    # a terminated episode's last transition does not bootstrap, a truncated one does
+    term_l = [l for l in starts if brute_force(log, l, 3, 0.9)[1] == 0.0]
+    trunc_end = [l for l in starts if log[l + 1][0] == 0 and l + 1 == 7]  # episode 0 is truncated at t=7
+    assert term_l and all(disc[starts.index(l), 0] == 0.0 for l in term_l)
+    assert trunc_end and disc[starts.index(trunc_end[0]), 0] == pytest.approx(0.9)
+
+
+def test_stacks_never_cross_episodes_and_repeat_first_frame():
+    episodes = [([1.0] * 4, False), ([1.0] * 1, True), ([1.0] * 6, False)]
+    buf = sear.ReplayBuffer(100, (3, 84, 84), 2, frame_stack=3, nstep=1, discount=0.99)
+    log = fill(buf, episodes)
+    l = np.arange(len(log))
+    pixels, masks = buf._obs(l)
+    for i in l:
+        times = pixels[i, 0::3, 0, 0].astype(int)  # red channel = time of each stacked frame
+        eps = pixels[i, 1::3, 0, 0].astype(int)
+        assert (eps == log[i][0]).all(), f"stack at t={i} crosses an episode"
+        start = max(j for j in range(i + 1) if log[j][2])
+        expected = [max(i - 2, start), max(i - 1, start), i]
+        assert list(times) == expected
+        assert [int(m[:, 0].sum()) for m in masks[i]] == [(t % 80) + 1 for t in expected]  # masks unpack right
+
+
+def test_sampling_only_valid_and_ring_never_serves_overwritten_frames():
+    episodes = [([0.5] * 9, False)] * 6
+    buf = sear.ReplayBuffer(25, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    log = fill(buf, episodes)
+    oldest = len(log) - 25
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        obs, *_ = buf.sample(16, rng)
+        times = obs[:, 0::3, 0, 0].astype(int)
+        assert (times >= oldest % 256).all()
+
+
+def test_bytes_per_transition_within_target():
+    buf = sear.ReplayBuffer(10, (3, 84, 84), 6, frame_stack=3, nstep=3, discount=0.99)  # walker: 6 actions
+    assert buf.bytes_per_transition <= 22_100
+    assert buf.mask_bytes == 882  # 84 * 84 bits
+
+
+# ---------------------------------------------------------------- acting
+def test_act_returns_bounded_action_and_rgbm_needs_mask():
+    cfg = small_cfg()
+    agent = sear.Agent(cfg, action_dim=3, device=torch.device("cpu"))
+    pixels = np.random.randint(0, 256, (9, 84, 84), dtype=np.uint8)
+    mask = np.zeros((3, 84, 84), dtype=np.uint8)
+    a = agent.act(pixels, mask, frame=10**6, eval_mode=False)
+    assert a.shape == (3,) and a.dtype == np.float32 and np.all(np.abs(a) <= 1)
+    rgbm = sear.Agent(small_cfg(method="rgbm"), action_dim=3, device=torch.device("cpu"))
+    assert rgbm.encoder.convs[0].in_channels == 12
+    with pytest.raises(ValueError, match="mask"):
+        rgbm.act(pixels, None, frame=0, eval_mode=True)
