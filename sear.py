@@ -66,6 +66,7 @@ class Config:
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
+    max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
     mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
     backgrounds: str = arg("", "Distracting Control: folder of images or DAVIS JPEGImages/480p ('' = built-in)")
@@ -115,7 +116,7 @@ def validate(cfg: Config) -> None:
     for name in positive:
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be > 0, got {getattr(cfg, name)}")
-    for name in ["action_repeat", "seed_frames", "exploration_steps", "eval_episodes", "lr",
+    for name in ["action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "eval_episodes", "lr",
                  "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip"]:
         if getattr(cfg, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(cfg, name)}")
@@ -836,7 +837,7 @@ def episode_seed(seed, episode):
 
 def make_envs(cfg: Config):
     import envs  # imported here so that `--help` and config errors need no MuJoCo
-    kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat, mask_noise=cfg.mask_noise,
+    kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None, mask_noise=cfg.mask_noise,
                   mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
                   difficulty=cfg.difficulty, render_quality=cfg.render_quality)
     try:
@@ -844,6 +845,11 @@ def make_envs(cfg: Config):
         eval_env = envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", **kwargs)
     except envs.EnvError as e:
         raise ConfigError(str(e))
+    cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
+    if cfg.max_episode_steps:  # an earlier time limit is a truncation, like the suite's own
+        from gymnasium.wrappers import TimeLimit
+        train_env = TimeLimit(train_env, cfg.max_episode_steps)
+        eval_env = TimeLimit(eval_env, cfg.max_episode_steps)
     return train_env, eval_env
 
 
@@ -871,10 +877,7 @@ def train(cfg: Config):
         resume_state = load_snapshot(cfg.resume)
         run_dir = cfg.resume
     device = pick_device(cfg.device)
-    train_env, eval_env = make_envs(cfg)
-    if cfg.action_repeat == 0:
-        import envs
-        cfg.action_repeat = envs.default_action_repeat(cfg.env)
+    train_env, eval_env = make_envs(cfg)  # also resolves action_repeat 0 to the suite's default
     if not cfg.resume:
         run_dir = new_run_dir(cfg)
         with open(os.path.join(run_dir, "config.json"), "w") as f:

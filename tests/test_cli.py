@@ -1,0 +1,106 @@
+"""sear.py end to end on CPU with tiny budgets: outputs, snapshots, --resume, bad input."""
+import csv
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+# Small networks and budgets: the full-size architecture is covered by test_sear.py.
+TINY = ["--frames", "48", "--seed-frames", "12", "--batch-size", "4", "--eval-every", "24",
+        "--eval-episodes", "1", "--max-episode-steps", "8", "--replay-size", "400",
+        "--latent-dim", "64", "--hidden-dim", "32", "--render-quality", "fast"]
+
+
+def run(args, tmp_path, timeout=600):
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    return subprocess.run([sys.executable, str(ROOT / "sear.py"), "--run-root", str(tmp_path / "runs"), *args],
+                          capture_output=True, text=True, timeout=timeout, cwd=tmp_path, env=env)
+
+
+def rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def only_run_dir(tmp_path):
+    dirs = sorted((tmp_path / "runs").iterdir())
+    assert len(dirs) == 1, dirs
+    return dirs[0]
+
+
+def tree_digest(path):
+    h = hashlib.sha256()
+    for p in sorted(Path(path).rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(path)).encode() + p.read_bytes())
+    return h.hexdigest()
+
+
+def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
+    r = run(["--env", "walker-walk", "--seed", "3", "--save-buffer", *TINY], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    run_dir = only_run_dir(tmp_path)
+    assert run_dir.name.startswith("walker-walk__sear__3__")
+    for name in ("train.csv", "eval.csv", "snapshot.pt", "config.json", "buffer.npz"):
+        assert (run_dir / name).exists(), name
+    train = rows(run_dir / "train.csv")
+    evals = rows(run_dir / "eval.csv")
+    assert [int(r["frame"]) for r in evals] == [0, 24]
+    assert [int(r["frame"]) for r in train] == [16, 32, 48]  # 8-step episodes, action repeat 2
+    assert {"return", "critic_loss", "actor_loss", "recon_loss", "mask_loss", "fps", "wall_time"} <= set(train[0])
+    assert train[-1]["mask_loss"] != ""  # learning happened after the seed frames
+    assert json.loads((run_dir / "config.json").read_text())["action_repeat"] == 2
+
+    # Resume from the last snapshot (written at the end, frame 48) and train further.
+    r = run(["--resume", str(run_dir), "--frames", "80"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "resumed at frame 48" in r.stdout
+    assert "no saved replay buffer" not in r.stdout  # --save-buffer: the buffer came back
+    evals = rows(run_dir / "eval.csv")
+    assert [int(r["frame"]) for r in evals] == [0, 24, 48, 72]
+    assert [int(r["frame"]) for r in rows(run_dir / "train.csv")] == [16, 32, 48, 64, 80]
+    assert only_run_dir(tmp_path) == run_dir  # no second run directory
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--env", "no-such-env"], "unknown env"),
+    (["--batch-size", "0"], "--batch-size must be > 0"),
+    (["--discount", "1.5"], "--discount must be in [0, 1]"),
+    (["--method", "nope"], "invalid choice"),
+    (["--frames", "ten"], "invalid int value"),
+    (["--resume", "does/not/exist"], "no such run directory"),
+])
+def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
+    r = run(args, tmp_path)
+    assert r.returncode != 0
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert message in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path):
+    run_dir = tmp_path / "runs" / "walker-walk__sear__1__x"
+    run_dir.mkdir(parents=True)
+    (run_dir / "snapshot.pt").write_bytes(b"this is not a torch file")
+    (run_dir / "train.csv").write_text("frame,return\n2,1.0\n")
+    before = tree_digest(run_dir)
+    r = run(["--resume", str(run_dir)], tmp_path)
+    assert r.returncode != 0
+    assert len(r.stderr.strip().splitlines()) == 1 and "cannot read" in r.stderr, r.stderr
+    assert tree_digest(run_dir) == before
+
+
+def test_resume_refuses_to_change_the_experiment(tmp_path):
+    r = run(["--env", "cup-catch", *TINY, "--frames", "16", "--eval-every", "100"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    run_dir = only_run_dir(tmp_path)
+    before = tree_digest(run_dir)
+    r = run(["--resume", str(run_dir), "--method", "drq"], tmp_path)
+    assert r.returncode != 0 and "cannot change on --resume" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert tree_digest(run_dir) == before
