@@ -1,0 +1,146 @@
+"""The baselines and ablations behind the auxiliary-loss seam: drq, ae, mae, curl, rgbm, sear-nosplit."""
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+import sear
+from tests.test_cli import TINY, only_run_dir, run
+
+CPU = torch.device("cpu")
+
+
+def tiny_cfg(method, **kw):
+    return sear.Config(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=8,
+                       action_repeat=2, **kw)
+
+
+def numpy_batch(n=8, action_dim=2, seed=0):
+    """A replay-style batch: (obs, mask, action, reward, discount, next_obs, next_mask)."""
+    rng = np.random.default_rng(seed)
+    frames = rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8)
+    # a structured image (a bright square where the "robot" is) so that decoders have something to learn
+    masks = np.zeros((n, 3, 84, 84), dtype=np.uint8)
+    for i in range(n):
+        y, x = rng.integers(10, 60, 2)
+        masks[i, :, y:y + 20, x:x + 20] = 1
+        frames[i] = (frames[i] // 4) + masks[i].repeat(3, axis=0) * 180
+    return (frames, masks, rng.uniform(-1, 1, (n, action_dim)).astype(np.float32),
+            rng.normal(size=(n, 1)).astype(np.float32), np.full((n, 1), 0.97, np.float32), frames, masks)
+
+
+@pytest.mark.parametrize("method", list(sear.METHODS))
+def test_every_method_builds_acts_and_updates(method):
+    agent = sear.Agent(tiny_cfg(method), action_dim=2, device=CPU)
+    batch = numpy_batch()
+    a = agent.act(batch[0][0], batch[1][0], frame=10**6, eval_mode=True)
+    assert a.shape == (2,) and np.all(np.abs(a) <= 1)
+    metrics = agent.update(batch, frame=10**5)
+    assert set(agent.metric_names) == set(metrics)
+    assert all(np.isfinite(v) for v in metrics.values())
+
+
+@pytest.mark.parametrize("method, terms", [("sear", ["recon_loss", "mask_loss"]), ("sear-nosplit", ["recon_loss", "mask_loss"]),
+                                           ("ae", ["recon_loss"]), ("mae", ["recon_loss"]), ("curl", ["curl_loss"])])
+def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms):
+    torch.manual_seed(0)
+    agent = sear.Agent(tiny_cfg(method, lr=1e-3), action_dim=2, device=CPU)
+    batch = numpy_batch(n=4, seed=1)
+    history = {t: [] for t in terms}
+    for _ in range(40):
+        m = agent.update(batch, frame=10**5)
+        for t in terms:
+            history[t].append(m[t])
+    for t in terms:
+        first, last = np.mean(history[t][:5]), np.mean(history[t][-5:])
+        assert last < 0.8 * first, f"{method} {t}: {first:.3f} -> {last:.3f}"
+
+
+def test_curl_logits_are_b_by_b_and_identity_w_picks_the_diagonal():
+    cfg = tiny_cfg("curl")
+    agent = sear.Agent(cfg, action_dim=2, device=CPU)
+    aux = agent.aux
+    q = torch.nn.functional.normalize(torch.randn(16, cfg.curl_dim), dim=1)
+    with torch.no_grad():
+        aux.W.copy_(torch.eye(cfg.curl_dim))
+    logits = aux.logits(q, q)
+    assert logits.shape == (16, 16)
+    assert torch.equal(logits.argmax(dim=1), torch.arange(16))
+    # the key encoder follows the online encoder by EMA (tau), not by gradients
+    assert not any(p.requires_grad for p in aux.key_encoder.parameters())
+    key_before = [p.clone() for p in aux.key_encoder.parameters()]
+    with torch.no_grad():
+        for p in agent.encoder.parameters():
+            p.add_(1.0)
+    aux.after_update(agent.encoder)
+    for kb, k, p in zip(key_before, aux.key_encoder.parameters(), agent.encoder.parameters()):
+        torch.testing.assert_close(k, kb + cfg.curl_tau * (p - kb))
+
+
+def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels():
+    torch.manual_seed(0)
+    hidden = sear.patch_mask(6, 84, 12, 0.75, CPU)
+    assert hidden.shape == (6, 1, 84, 84)
+    assert torch.allclose(hidden.mean(dim=(1, 2, 3)), torch.full((6,), 37 / 49))  # round(0.75 * 49) patches
+    # every patch is wholly hidden or wholly visible
+    patches = hidden.view(6, 7, 12, 7, 12)
+    assert torch.all(patches.amax(dim=(2, 4)) == patches.amin(dim=(2, 4)))
+
+    cfg = tiny_cfg("mae")
+    aux = sear.MAEAux(cfg, cfg.latent_dim)
+    obs = torch.randint(0, 256, (4, 9, 84, 84)).float()
+
+    class OffByOne(torch.nn.Module):  # predicts target + 1 everywhere: error 1 on every pixel
+        def forward(self, z):
+            return obs / 255.0 - 0.5 + 1.0
+
+    aux.recon_decoder = OffByOne()
+    encoder = sear.PooledEncoder(9, cfg.latent_dim)
+    _, m = aux(encoder, None, obs, obs, None)
+    assert m["recon_loss"] == pytest.approx(9 * 37 * 144)  # hidden pixels only, 9 channels
+
+
+def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame():
+    agent = sear.Agent(tiny_cfg("rgbm"), action_dim=2, device=CPU)
+    assert agent.encoder.convs[0].in_channels == 12
+    pixels = torch.rand(2, 9, 84, 84) * 255
+    mask = (torch.rand(2, 3, 84, 84) > 0.5).float()
+    x = agent.encoder_input(pixels, mask)
+    assert x.shape == (2, 12, 84, 84)
+    for f in range(3):
+        assert torch.equal(x[:, 4 * f:4 * f + 3], pixels[:, 3 * f:3 * f + 3])
+        assert torch.equal(x[:, 4 * f + 3], mask[:, f] * 255)
+    with pytest.raises(ValueError, match="needs the robot mask"):
+        agent.act(pixels[0].numpy(), None, frame=0, eval_mode=True)
+
+
+@pytest.mark.parametrize("method, split", [("sear", True), ("sear-nosplit", False)])
+def test_decoder_inputs_split_or_not(method, split):
+    cfg = tiny_cfg(method)
+    agent = sear.Agent(cfg, action_dim=2, device=CPU)
+    seen = {}
+    agent.aux.recon_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("recon", i[0]))
+    agent.aux.mask_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("mask", i[0]))
+    latent = torch.randn(4, cfg.latent_dim)
+    obs = torch.rand(4, 9, 84, 84) * 255
+    agent.aux(agent.encoder, latent, obs, obs, torch.zeros(4, 3, 84, 84))
+    half = cfg.latent_dim // 2
+    if split:  # the authors' order: first half -> reconstruction (z), second half -> mask (z_R)
+        assert torch.equal(seen["recon"], latent[:, :half]) and torch.equal(seen["mask"], latent[:, half:])
+    else:
+        assert torch.equal(seen["recon"], latent) and torch.equal(seen["mask"], latent)
+
+
+@pytest.mark.parametrize("method", [m for m in sear.METHODS if m != "sear"])  # sear: test_cli.py
+def test_cli_smoke_run_per_method(method, tmp_path):
+    extra = ["--mask-noise", "0.2"] if method in ("rgbm", "sear-nosplit") else []  # noise combines with mask users
+    r = run(["--env", "walker-walk", "--method", method, *TINY, "--frames", "32", "--eval-every", "100", *extra],
+            tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    run_dir = only_run_dir(tmp_path)
+    assert run_dir.name.startswith(f"walker-walk__{method}__")
+    with open(run_dir / "train.csv", newline="") as f:
+        train = list(csv.DictReader(f))
+    assert train and train[-1]["critic_loss"] != ""
+    assert (run_dir / "eval.csv").exists() and (run_dir / "snapshot.pt").exists()

@@ -1,0 +1,208 @@
+"""Tests of plot.py on fake run directories with known returns."""
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import plot
+
+PLOT_PY = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "plot.py")
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+T_975_DF2 = 4.302652729749464  # textbook t_{0.975, 2} (tables: 4.303)
+
+
+def make_run(root, env, method, seed, frames=(0, 10000, 20000), success=False, base=0.0):
+    """A run dir as sear.py writes it; return = base + 10 * seed + frame / 1000, exactly."""
+    d = root / f"{env}__{method}__{seed}__20240101-000000"
+    d.mkdir(parents=True)
+    (d / "config.json").write_text(json.dumps({"env": env, "method": method, "seed": seed,
+                                               "frames": max(frames)}))
+    with open(d / "eval.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "step", "episode", "return", "wall_time"] + (["success"] if success else []))
+        for i, fr in enumerate(frames):
+            w.writerow([fr, fr // 2, i, base + 10 * seed + fr / 1000, 1.0 * i]
+                       + ([float(seed >= 2)] if success else []))
+    # a side file left by a resume must be ignored: its values would wreck the means
+    (d / "eval.after_snapshot_20240101-000001.csv").write_text("frame,return\n30000,1e9\n")
+    return d
+
+
+@pytest.fixture
+def runs(tmp_path):
+    """2 methods x 3 seeds on one env; drq returns are 100 below sear's."""
+    root = tmp_path / "runs"
+    for method, base in (("drq", 0.0), ("sear", 100.0)):
+        for seed in (1, 2, 3):
+            make_run(root, "walker-walk", method, seed, base=base)
+    return root
+
+
+def run_main(capsys, *argv):
+    """(exit code, stdout, stderr) of plot.main; argparse errors exit via SystemExit."""
+    try:
+        code = plot.main([str(a) for a in argv])
+    except SystemExit as e:
+        code = e.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+# ---------------------------------------------------------------- statistics
+@pytest.mark.parametrize("df,expected", [(1, 12.706), (2, 4.303), (4, 2.776), (10, 2.228), (100, 1.984)])
+def test_t_quantile_matches_tables(df, expected):
+    assert plot.t_quantile(0.975, df) == pytest.approx(expected, abs=1e-3)
+    assert plot.t_quantile(0.025, df) == pytest.approx(-expected, abs=1e-3)  # symmetric
+
+
+def test_t_quantile_matches_scipy():
+    stats = pytest.importorskip("scipy.stats")
+    for df in (1, 2, 3, 7, 30):
+        for p in (0.6, 0.9, 0.975, 0.995):
+            assert plot.t_quantile(p, df) == pytest.approx(stats.t.ppf(p, df), rel=1e-9)
+
+
+def test_aggregate_mean_and_ci_by_hand(runs):
+    groups = plot.group_runs([plot.load_run(d) for d in plot.find_runs([str(runs)])], ["method"])
+    assert list(groups) == ["drq", "sear"] and all(len(g) == 3 for g in groups.values())
+    frames, mean, ci = plot.aggregate([(r["frames"], r["values"]) for r in groups["drq"]])
+    np.testing.assert_array_equal(frames, [0, 10000, 20000])
+    # seeds 1,2,3 at frame f: 10+f/1000, 20+f/1000, 30+f/1000 -> mean 20+f/1000, std 10
+    np.testing.assert_allclose(mean, [20, 30, 40])
+    np.testing.assert_allclose(ci, T_975_DF2 * 10 / math.sqrt(3))  # = 24.84
+    _, mean, _ = plot.aggregate([(r["frames"], r["values"]) for r in groups["sear"]])
+    np.testing.assert_allclose(mean, [120, 130, 140])
+
+
+def test_aggregate_single_run_has_no_band():
+    frames, mean, ci = plot.aggregate([(np.array([0.0, 5.0]), np.array([1.0, 2.0]))])
+    np.testing.assert_allclose(mean, [1, 2])
+    assert np.isnan(ci).all()
+
+
+def test_aggregate_eval_uses_common_frames_train_interpolates():
+    a = (np.array([0.0, 10.0, 20.0]), np.array([0.0, 10.0, 20.0]))
+    b = (np.array([0.0, 5.0, 10.0]), np.array([2.0, 4.0, 6.0]))
+    frames, mean, _ = plot.aggregate([a, b])  # intersection: 0, 10 (b stopped at 10)
+    np.testing.assert_array_equal(frames, [0, 10])
+    np.testing.assert_allclose(mean, [1, 8])
+    frames, mean, _ = plot.aggregate([a, b], interpolate=True)  # union cut to [0, 10]; a(5) = 5
+    np.testing.assert_array_equal(frames, [0, 5, 10])
+    np.testing.assert_allclose(mean, [1, 4.5, 8])
+    with pytest.raises(plot.PlotError):
+        plot.aggregate([a, (np.array([1.0, 2.0]), np.array([0.0, 0.0]))])  # nothing in common
+
+
+# ---------------------------------------------------------------- finding and grouping runs
+def test_find_runs_accepts_dirs_parents_and_globs(runs):
+    all_runs = plot.find_runs([str(runs)])
+    assert len(all_runs) == 6
+    assert plot.find_runs([str(runs / "*__drq__*")]) == [r for r in all_runs if "__drq__" in r]
+    assert plot.find_runs([all_runs[0], all_runs[0]]) == [all_runs[0]]  # no double counting
+
+
+def test_group_by_method_and_env(runs):
+    make_run(runs, "cheetah-run", "drq", 1)
+    loaded = [plot.load_run(d) for d in plot.find_runs([str(runs)])]
+    assert list(plot.group_runs(loaded, ["method"])) == ["drq", "sear"]
+    assert list(plot.group_runs(loaded, ["method", "env"])) == [
+        "drq / cheetah-run", "drq / walker-walk", "sear / walker-walk"]
+    with pytest.raises(plot.PlotError, match="nosuchkey"):
+        plot.group_runs(loaded, ["nosuchkey"])
+
+
+# ---------------------------------------------------------------- CLI
+def test_cli_subprocess_writes_png_and_table(runs, tmp_path):
+    out = tmp_path / "curves.png"
+    p = subprocess.run([sys.executable, PLOT_PY, str(runs), "--out", str(out)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    data = out.read_bytes()
+    assert data.startswith(PNG_MAGIC) and len(data) > 1000
+    rows = [line for line in p.stdout.splitlines() if line.startswith("| walker-walk")]
+    assert rows == ["| walker-walk | drq | 3 | 20000 | 40 ± 24.8 |",
+                    "| walker-walk | sear | 3 | 20000 | 140 ± 24.8 |"]
+
+
+def test_several_envs_and_success_metric(runs, tmp_path, capsys):
+    for seed in (1, 2, 3):
+        make_run(runs.parent / "mw", "mw-reach", "sear", seed, frames=(0, 10000), success=True)
+    code, out, err = run_main(capsys, runs, runs.parent / "mw", "--out", tmp_path / "two.png")
+    assert code == 0, err
+    assert "| mw-reach | sear | 3 | 10000 |" in out and "| walker-walk | drq | 3 | 20000 |" in out
+    code, out, err = run_main(capsys, runs.parent / "mw", "--metric", "success",
+                              "--out", tmp_path / "s.png")
+    assert code == 0, err  # success = 0, 1, 1 for seeds 1, 2, 3
+    assert f"| mw-reach | sear | 3 | 10000 | 0.6667 ± {T_975_DF2 * (1 / 3) ** 0.5 / 3 ** 0.5:.3g} |" in out
+
+
+def test_train_csv_with_empty_loss_cells(tmp_path, capsys):
+    for seed in (1, 2):
+        d = make_run(tmp_path / "runs", "walker-walk", "drq", seed)
+        (d / "train.csv").write_text("frame,step,episode,return,length,critic_loss,fps,wall_time\n"
+                                     f"1000,500,0,{seed},500,,10,1\n2000,1000,1,{2 * seed},500,0.5,10,2\n")
+    code, out, err = run_main(capsys, tmp_path / "runs", "--csv", "train", "--out", tmp_path / "t.png")
+    assert code == 0, err
+    assert "| walker-walk | drq | 2 | 2000 | 3 ±" in out
+
+
+def test_success_metric_without_column_is_an_error(runs, tmp_path, capsys):
+    code, out, err = run_main(capsys, runs, "--metric", "success", "--out", tmp_path / "x.png")
+    assert code == 2 and not (tmp_path / "x.png").exists()
+    assert err.count("\n") == 1 and err.startswith("plot.py: error:") and "'success'" in err
+
+
+def test_no_runs_is_one_line_exit_2(tmp_path):
+    (tmp_path / "empty").mkdir()
+    p = subprocess.run([sys.executable, PLOT_PY, str(tmp_path / "empty"), "--out", str(tmp_path / "x.png")],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert p.stderr.count("\n") == 1 and p.stderr.startswith("plot.py: error: no runs")
+    assert "Traceback" not in p.stderr
+
+
+@pytest.mark.parametrize("breakage", ["missing eval", "empty eval", "header only", "unknown metric",
+                                      "bad flag", "no such path"])
+def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, breakage):
+    eval_csv = next(runs.iterdir()) / "eval.csv"
+    argv = [runs, "--out", tmp_path / "x.png"]
+    if breakage == "missing eval":
+        eval_csv.unlink()
+    elif breakage == "empty eval":
+        eval_csv.write_text("")
+    elif breakage == "header only":
+        eval_csv.write_text("frame,step,episode,return,wall_time\n")
+    elif breakage == "unknown metric":
+        argv += ["--metric", "reward"]
+    elif breakage == "bad flag":
+        argv += ["--colour", "red"]
+    elif breakage == "no such path":
+        argv[0] = tmp_path / "nope"
+    code, _, err = run_main(capsys, *argv)
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("plot.py: error:"), err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_refuses_to_overwrite_without_force(runs, tmp_path, capsys):
+    out = tmp_path / "curves.png"
+    out.write_bytes(b"precious")
+    code, _, err = run_main(capsys, runs, "--out", out)
+    assert code == 2 and out.read_bytes() == b"precious"
+    assert err.count("\n") == 1 and "--force" in err
+    code, _, err = run_main(capsys, runs, "--out", out, "--force")
+    assert code == 0, err
+    assert out.read_bytes().startswith(PNG_MAGIC)
+
+
+def test_load_run_skips_empty_cells(tmp_path):
+    d = make_run(tmp_path, "walker-walk", "drq", 1)
+    (d / "eval.csv").write_text("frame,step,episode,return,wall_time\n0,0,0,,1\n10000,5000,1,7.5,2\n")
+    run = plot.load_run(str(d))
+    np.testing.assert_array_equal(run["frames"], [10000])
+    np.testing.assert_array_equal(run["values"], [7.5])
