@@ -90,26 +90,10 @@ def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> di
 
 
 # ---------------------------------------------------------------- statistics
-def t_cdf(x: float, df: int) -> float:
-    """Student-t CDF for integer df, closed form (Abramowitz & Stegun 26.7.3-4): no scipy."""
-    theta = math.atan(x / math.sqrt(df))
-    s, c2 = math.sin(theta), math.cos(theta) ** 2
-    k, term, total = (0, 1.0, 0.0) if df % 2 == 0 else (1, math.cos(theta), 0.0)
-    while k <= df - 2:
-        total += term
-        term *= (k + 1) / (k + 2) * c2
-        k += 2
-    a = s * total if df % 2 == 0 else 2 / math.pi * (theta + s * total)
-    return 0.5 + 0.5 * a
-
-
 def t_quantile(p: float, df: int) -> float:
-    """Inverse of t_cdf by bisection on theta = atan(x / sqrt(df)), which spans a finite range."""
-    lo, hi = -math.pi / 2, math.pi / 2
-    for _ in range(100):
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if t_cdf(math.sqrt(df) * math.tan(mid), df) < p else (lo, mid)
-    return math.sqrt(df) * math.tan((lo + hi) / 2)
+    """Student-t quantile: the 95% interval of a mean over few seeds is wider than +-1.96 sd/sqrt(n)."""
+    from scipy import stats  # imported here: the rest of plot.py needs only numpy and matplotlib
+    return float(stats.t.ppf(p, df))
 
 
 def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False):
