@@ -431,18 +431,20 @@ class CURLAux(AuxLoss):
 class Method:
     encoder: str            # "pooled" (SEAR's) or "drq" (DrQ-v2's)
     mask_input: bool        # DrQ-RGBM: the mask is a 4th channel of every stacked frame
+    uses_mask: bool         # False: the env skips the segmentation render (it costs a second pass)
     make_aux: object        # (cfg, latent_dim, encoder) -> AuxLoss | None
     doc: str
 
 
 METHODS = {
-    "sear": Method("pooled", False, lambda c, d, e: SearAux(c, d, split=True), "SEAR: latent split, mask + recon"),
-    "drq": Method("drq", False, lambda c, d, e: None, "DrQ-v2 as published"),
-    "ae": Method("pooled", False, lambda c, d, e: AEAux(c, d), "DrQ-AE: one decoder on the whole latent"),
-    "mae": Method("pooled", False, lambda c, d, e: MAEAux(c, d), "DrQ-MAE: reconstruct hidden patches"),
-    "curl": Method("pooled", False, lambda c, d, e: CURLAux(c, d, e), "CURL: contrastive, momentum key"),
-    "rgbm": Method("drq", True, lambda c, d, e: None, "DrQ-RGBM: mask appended to the input"),
-    "sear-nosplit": Method("pooled", False, lambda c, d, e: SearAux(c, d, split=False),
+    "sear": Method("pooled", False, True, lambda c, d, e: SearAux(c, d, split=True),
+                   "SEAR: latent split, mask + recon"),
+    "drq": Method("drq", False, False, lambda c, d, e: None, "DrQ-v2 as published"),
+    "ae": Method("pooled", False, False, lambda c, d, e: AEAux(c, d), "DrQ-AE: one decoder on the whole latent"),
+    "mae": Method("pooled", False, False, lambda c, d, e: MAEAux(c, d), "DrQ-MAE: reconstruct hidden patches"),
+    "curl": Method("pooled", False, False, lambda c, d, e: CURLAux(c, d, e), "CURL: contrastive, momentum key"),
+    "rgbm": Method("drq", True, True, lambda c, d, e: None, "DrQ-RGBM: mask appended to the input"),
+    "sear-nosplit": Method("pooled", False, True, lambda c, d, e: SearAux(c, d, split=False),
                            "SEAR without latent split"),
 }
 
@@ -839,7 +841,8 @@ def make_envs(cfg: Config):
     import envs  # imported here so that `--help` and config errors need no MuJoCo
     kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None, mask_noise=cfg.mask_noise,
                   mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
-                  difficulty=cfg.difficulty, render_quality=cfg.render_quality)
+                  difficulty=cfg.difficulty, render_quality=cfg.render_quality,
+                  render_mask=METHODS[cfg.method].uses_mask)
     try:
         train_env = envs.make_env(cfg.env, seed=cfg.seed, split="train", **kwargs)
         eval_env = envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", **kwargs)
