@@ -104,3 +104,14 @@ def test_resume_refuses_to_change_the_experiment(tmp_path):
     assert r.returncode != 0 and "cannot change on --resume" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert tree_digest(run_dir) == before
+
+
+@pytest.mark.parametrize("env_name", ["walker-walk-distracting", "metaworld-door-open", "kitchen-kettle", "adroit-door"])
+def test_smoke_run_on_every_suite(env_name, tmp_path):
+    r = run(["--env", env_name, *TINY, "--frames", "16", "--seed-frames", "8", "--eval-every", "100"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    run_dir = only_run_dir(tmp_path)
+    train = rows(run_dir / "train.csv")
+    assert train and train[-1]["mask_loss"] != ""
+    if not env_name.endswith("distracting"):  # the manipulation suites report success
+        assert "success" in train[0] and "success" in rows(run_dir / "eval.csv")[0]
