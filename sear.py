@@ -110,13 +110,13 @@ class ConfigError(ValueError):
 
 
 def validate(cfg: Config) -> None:
-    positive = ["frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
+    positive = ["frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every", "eval_episodes",
                 "feature_dim", "latent_dim", "hidden_dim", "std_frames", "eval_every",
                 "mae_patch", "curl_dim"]
     for name in positive:
         if getattr(cfg, name) <= 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be > 0, got {getattr(cfg, name)}")
-    for name in ["action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "eval_episodes", "lr",
+    for name in ["action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
                  "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip"]:
         if getattr(cfg, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(cfg, name)}")
@@ -955,7 +955,10 @@ def train(cfg: Config):
             action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
         else:
             action = agent.act(obs["pixels"], obs["mask"], frame, eval_mode=False)
-        if frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample():
+        # Learning starts once the buffer holds the seed frames' worth of steps: after the random
+        # phase of a new run, and again after a resume that could not bring its buffer back.
+        if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
+                and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
             metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), frame)
             for k, v in metrics.items():
                 ep_metrics.setdefault(k, []).append(v)
@@ -1032,7 +1035,8 @@ def parse_args(argv=None) -> Config:
             if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
                 raise ConfigError(f"--{k.replace('_', '-')} cannot change on --resume "
                                   f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
-        cfg = Config(**{**saved, **given})
+        known = {f.name for f in dataclasses.fields(Config)}
+        cfg = Config(**{**{k: v for k, v in saved.items() if k in known}, **given})
     else:
         cfg = Config(**given)
     validate(cfg)
