@@ -1,0 +1,69 @@
+"""Environment throughput per suite: render_quality paper vs fast, RGB vs RGB+mask.
+
+Prints a markdown table of agent steps per second (one agent step = the
+suite's default action repeat of physics steps + one RGB render, plus the
+segmentation render and mask pipeline for "RGB+mask").  Each env is built
+once per render quality; both mask modes are timed on it after a warm-up.
+
+    MUJOCO_GL=egl python benchmarks/bench_envs.py [--steps 24] [--envs ...]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+import envs  # noqa: E402
+
+DEFAULT_ENVS = ["walker-walk", "walker-walk-distracting", "cup-catch", "metaworld-door-open",
+                "kitchen-kettle", "adroit-door"]
+
+
+def steps_per_second(env, steps: int, rng: np.random.Generator) -> float:
+    env.reset(seed=0)
+    env.step(rng.uniform(-1, 1, env.action_space.shape))  # warm-up (first render)
+    start = time.perf_counter()
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
+        if terminated or truncated:
+            env.reset()
+    return steps / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=24, help="timed agent steps per cell")
+    parser.add_argument("--envs", nargs="+", default=DEFAULT_ENVS)
+    args = parser.parse_args()
+
+    rows = []
+    for name in args.envs:
+        cells = {}
+        for quality in ("paper", "fast"):
+            env = envs.make_env(name, seed=0, render_quality=quality)
+            rng = np.random.default_rng(0)
+            for render_mask in (False, True):
+                env.render_mask = render_mask
+                cells[quality, render_mask] = steps_per_second(env, args.steps, rng)
+            env.close()
+        rows.append((name, envs.default_action_repeat(name), cells))
+        print(f"# done {name}", file=sys.stderr, flush=True)
+
+    print(f"Agent steps/s ({args.steps} steps per cell, 84x84, {os.cpu_count()} CPU cores, "
+          f"MUJOCO_GL={os.environ['MUJOCO_GL']})\n")
+    print("| env | action repeat | paper RGB | paper RGB+mask | fast RGB | fast RGB+mask |")
+    print("|---|---|---|---|---|---|")
+    for name, repeat, c in rows:
+        print(f"| {name} | {repeat} | {c['paper', False]:.1f} | {c['paper', True]:.1f} "
+              f"| {c['fast', False]:.1f} | {c['fast', True]:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,967 @@
+"""Pixel environments with robot segmentation masks for SEAR.
+
+SEAR (Structured Environment-Agent Representations, ICML 2023) trains DrQ-v2
+with an auxiliary decoder that predicts the robot's binary segmentation mask.
+This module gives every suite used in the paper one Gymnasium-style interface:
+
+    env = make_env("walker-walk-distracting", seed=0)
+    obs, info = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(action)
+
+* ``obs["pixels"]``: uint8 (3*frame_stack, size, size), channel-first, oldest
+  frame first; ``obs["mask"]``: uint8 (frame_stack, size, size) with 0/1.
+* Frame stacking and action repeat happen inside the env (rewards are summed
+  over the repeats; repeating stops when the episode ends).  At reset the first
+  frame fills the whole stack.
+* Time-limit ends are ``truncated=True``; real terminations ``terminated=True``.
+* ``info["success"]`` exists for the suites that define success (Meta-World,
+  Kitchen, Adroit).
+* ``make_env(seed=s)`` plus ``reset(seed=s)`` reproduces an episode, including
+  random backgrounds and mask noise.
+
+The robot-mask rule (identical for all suites, no hard-coded geom-id ranges):
+a pixel is robot iff MuJoCo's segmentation render labels it with an object of
+type mjOBJ_GEOM whose body lies in the subtree (via ``model.body_parentid``) of
+the suite's robot root body (walker ``torso``, ball_in_cup ``cup``, Sawyer
+``base``, Franka ``panda0_link0``, Adroit ``forearm``).  See ``robot_geoms``.
+
+Mask pipeline (paper appendix): for the manipulation suites the segmentation is
+rendered at 3x the observation size, cleaned with a binary opening and
+downsampled by a 3x3 majority vote (``mask_downsample="stride"`` keeps every
+3rd pixel as the authors did).  dm_control masks are rendered at the
+observation size directly.  ``mask_noise`` and ``mask_approx`` corrupt the mask
+for the paper's robustness ablations.
+
+All suites render through one path: a ``mujoco.Renderer`` on the suite's raw
+MjModel/MjData (RGB plus segmentation), so camera, shadow and multisampling
+settings are handled in one place (``render_quality="paper"`` keeps each
+suite's own settings, ``"fast"`` switches off shadows and multisampling).
+
+Run ``python envs.py --gallery docs/suites.png`` to draw RGB | mask | overlay
+for one task of every suite.
+"""
+from __future__ import annotations
+
+import os
+
+# Must precede any mujoco / dm_control import: headless EGL rendering.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import argparse
+import atexit
+import collections
+import functools
+import sys
+import warnings
+import weakref
+from pathlib import Path
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+from PIL import Image
+from scipy import ndimage
+
+__all__ = [
+    "EnvError", "env_names", "default_action_repeat", "make_env", "SEAREnv",
+    "robot_geoms", "robot_pixels", "downsample_mask", "procedural_background",
+]
+
+
+class EnvError(ValueError):
+    """Bad user input (unknown env name, bad option, unusable backgrounds dir).
+
+    The message is always a single line so that a CLI can print it as is.
+    """
+
+
+# ----------------------------------------------------------------------------
+# Registry
+# ----------------------------------------------------------------------------
+
+# dm_control domain aliases used in env names (DrQ-v2 / SEAR convention).
+_DMC_ALIASES = {"cup": "ball_in_cup"}
+
+# Robot root body per dm_control domain.  Domains not listed fall back to the
+# first child body of the world that has a joint in its subtree (the first
+# moving body tree in the MJCF), which is the agent for every suite domain we
+# checked but is only a heuristic.
+_DMC_ROBOT_ROOTS = {
+    "walker": "torso", "ball_in_cup": "cup", "cheetah": "torso",
+    "hopper": "torso", "quadruped": "torso", "humanoid": "torso",
+    "reacher": "arm", "finger": "proximal", "cartpole": "cart",
+    "acrobot": "upper_arm", "pendulum": "pole", "fish": "torso",
+}
+
+_KITCHEN_TASKS = {"kettle": "kettle", "light": "light switch", "slider": "slide cabinet"}
+_ADROIT_TASKS = {"door": "AdroitHandDoor-v1", "hammer": "AdroitHandHammer-v1",
+                 "pen": "AdroitHandPen-v1", "relocate": "AdroitHandRelocate-v1"}
+
+# Original Distracting Control Suite difficulty settings.  Number of background
+# videos (None = all videos of the split) and the scale of the optional camera
+# and colour distractions.
+_DIFFICULTY_NUM_VIDEOS = {"easy": 4, "medium": 8, "hard": None}
+_DIFFICULTY_SCALE = {"easy": 0.1, "medium": 0.2, "hard": 0.3}
+# Ground-plane alpha under distraction, as in the original suite.
+_GROUND_ALPHA = {"walker": 1.0, "ball_in_cup": 0.3}
+
+# DAVIS 2017 train / val video names (the 60 / 30 videos the Distracting
+# Control Suite uses for its train / validation backgrounds).
+DAVIS17_TRAIN = (
+    "bear bmx-bumps boat boxing-fisheye breakdance-flare bus car-turn cat-girl "
+    "classic-car color-run crossing dance-jump dancing disc-jockey dog-agility "
+    "dog-gooses dogs-scale drift-turn drone elephant flamingo hike hockey "
+    "horsejump-low kid-football kite-walk koala lady-running lindy-hop "
+    "longboard lucia mallard-fly mallard-water miami-surf motocross-bumps "
+    "motorbike night-race paragliding planes-water rallye rhino rollerblade "
+    "schoolgirls scooter-board scooter-gray sheep skate-park snowboard "
+    "soccerball stroller stunt surf swing tennis tractor-sand train tuk-tuk "
+    "upside-down varanus-cage walking").split()
+DAVIS17_VAL = (
+    "bike-packing blackswan bmx-trees breakdance camel car-roundabout "
+    "car-shadow cows dance-twirl dog dogs-jump drift-chicane drift-straight "
+    "goat gold-fish horsejump-high india judo kite-surf lab-coat libby loading "
+    "mbike-trick motocross-jump paragliding-launch parkour pigs scooter-black "
+    "shooting soapbox").split()
+
+_IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".gif", ".webp", ".tif", ".tiff"}
+
+
+@functools.lru_cache(maxsize=None)
+def _dmc_tasks() -> tuple[tuple[str, str], ...]:
+    from dm_control import suite
+    return tuple(suite.ALL_TASKS)
+
+
+@functools.lru_cache(maxsize=None)
+def _metaworld_tasks() -> tuple[str, ...]:
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+    return tuple(name[: -len("-v3")] for name in ALL_V3_ENVIRONMENTS)
+
+
+def _dmc_name(domain: str, task: str) -> str:
+    inverse = {v: k for k, v in _DMC_ALIASES.items()}
+    return f"{inverse.get(domain, domain)}-{task}"
+
+
+def env_names() -> list[str]:
+    """Every registered env name.
+
+    Any dm_control ``<domain>-<task>`` also works with ``-distracting``; only
+    the two headline distracting envs are listed.
+    """
+    names = ["walker-walk", "cup-catch"]
+    names += [n for n in (_dmc_name(d, t) for d, t in _dmc_tasks()) if n not in names]
+    names += ["walker-walk-distracting", "cup-catch-distracting"]
+    names += [f"metaworld-{t}" for t in _metaworld_tasks()]
+    names += [f"kitchen-{t}" for t in _KITCHEN_TASKS]
+    names += [f"adroit-{t}" for t in _ADROIT_TASKS]
+    return names
+
+
+def _valid_names_line() -> str:
+    mw = _metaworld_tasks()
+    return ("walker-walk, cup-catch, any dm_control <domain>-<task> (e.g. cheetah-run), "
+            "<domain>-<task>-distracting (e.g. walker-walk-distracting), "
+            f"metaworld-<task> ({len(mw)} MT1 tasks, e.g. {', '.join(mw[:3])}), "
+            f"kitchen-{{{','.join(_KITCHEN_TASKS)}}}, adroit-{{{','.join(_ADROIT_TASKS)}}}")
+
+
+def _parse_name(name: str) -> tuple[str, tuple]:
+    """Map an env name to (suite, args); raise EnvError for unknown names."""
+    if not isinstance(name, str):
+        raise EnvError(f"env name must be a string, got {name!r}")
+    if name.startswith("metaworld-") and name[len("metaworld-"):] in _metaworld_tasks():
+        return "metaworld", (name[len("metaworld-"):],)
+    if name.startswith("kitchen-") and name[len("kitchen-"):] in _KITCHEN_TASKS:
+        return "kitchen", (name[len("kitchen-"):],)
+    if name.startswith("adroit-") and name[len("adroit-"):] in _ADROIT_TASKS:
+        return "adroit", (name[len("adroit-"):],)
+    distracting = name.endswith("-distracting")
+    base = name[: -len("-distracting")] if distracting else name
+    for domain, task in _dmc_tasks():
+        if base == _dmc_name(domain, task) or base == f"{domain}-{task}":
+            return ("distracting" if distracting else "dmc"), (domain, task)
+    raise EnvError(f"unknown env {name!r}; valid: {_valid_names_line()}")
+
+
+def default_action_repeat(name: str) -> int:
+    """2 for dm_control / Distracting Control / Meta-World, 1 for Kitchen / Adroit."""
+    suite, _ = _parse_name(name)
+    return 1 if suite in ("kitchen", "adroit") else 2
+
+
+# ----------------------------------------------------------------------------
+# The robot-mask rule
+# ----------------------------------------------------------------------------
+
+def robot_geoms(model: mujoco.MjModel, root_body: str) -> np.ndarray:
+    """Boolean array (ngeom,): geom belongs to the subtree of ``root_body``.
+
+    This is the single definition of "robot" used for every suite.
+    """
+    root = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_body)
+    if root < 0:
+        raise RuntimeError(f"robot root body {root_body!r} not in model")
+    in_subtree = np.zeros(model.nbody, dtype=bool)
+    in_subtree[root] = True
+    # Bodies are stored in topological order (parent id < child id), so one
+    # forward pass propagates membership from the root to all descendants.
+    for b in range(root + 1, model.nbody):
+        in_subtree[b] = in_subtree[model.body_parentid[b]]
+    return in_subtree[model.geom_bodyid]
+
+
+def robot_pixels(seg: np.ndarray, geom_is_robot: np.ndarray) -> np.ndarray:
+    """Boolean (H, W) robot mask from a MuJoCo segmentation image (H, W, 2).
+
+    Channel 0 is the object id, channel 1 the object type (-1 = background).
+    Sites and other non-geom objects also show up in segmentation renders;
+    only geoms count.
+    """
+    ids, types = seg[..., 0], seg[..., 1]
+    # int(): comparing an int array with the pybind enum directly would go
+    # through slow object-dtype comparisons.
+    is_geom = types == int(mujoco.mjtObj.mjOBJ_GEOM)
+    return is_geom & geom_is_robot[np.where(is_geom, ids, 0)]
+
+
+def downsample_mask(mask: np.ndarray, factor: int, mode: str = "majority") -> np.ndarray:
+    """Downsample a boolean mask by an integer factor.
+
+    ``majority``: a pixel is robot if more than half of its factor x factor
+    block is (fills the one-pixel holes that mesh seams leave).  ``stride``:
+    keep every factor-th pixel, as the SEAR authors did.
+    """
+    if factor == 1:
+        return mask
+    if mode == "stride":
+        return mask[::factor, ::factor]
+    if mode != "majority":
+        raise EnvError(f"mask_downsample must be 'majority' or 'stride', got {mode!r}")
+    h, w = mask.shape
+    blocks = mask.reshape(h // factor, factor, w // factor, factor)
+    return blocks.sum(axis=(1, 3)) * 2 > factor * factor
+
+
+def _approximate_mask(mask: np.ndarray) -> np.ndarray:
+    """The paper's "approximate mask": coarse, blurry, re-thresholded.
+
+    Downsample 4x (area), upsample back (bilinear), gaussian blur, threshold
+    at 0.5.  Keeps the rough robot shape but loses thin parts and detail.
+    """
+    h, w = mask.shape
+    small = Image.fromarray(mask.astype(np.uint8) * 255).resize(
+        (max(1, w // 4), max(1, h // 4)), Image.BOX)
+    big = np.asarray(small.resize((w, h), Image.BILINEAR), dtype=np.float32) / 255.0
+    return ndimage.gaussian_filter(big, sigma=1.5) > 0.5
+
+
+# ----------------------------------------------------------------------------
+# Backgrounds for Distracting Control
+# ----------------------------------------------------------------------------
+
+def procedural_background(seed: int, size: int = 256) -> np.ndarray:
+    """A deterministic synthetic background image, uint8 (size, size, 3).
+
+    The default background set needs no download: smooth random colour fields,
+    stripes and blobs (cycled by seed), colourful and textured enough to be a
+    real distraction.
+    """
+    rng = np.random.default_rng(seed)
+    kind = seed % 3
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size
+    if kind == 0:  # smooth random colour field: a few octaves of blurred noise
+        field = np.zeros((size, size, 3), np.float32)
+        for sigma, weight in ((size / 8, 1.0), (size / 24, 0.5), (size / 64, 0.25)):
+            octave = ndimage.gaussian_filter(rng.standard_normal((size, size, 3)).astype(np.float32),
+                                             sigma=(sigma, sigma, 0), mode="wrap")
+            field += weight * octave / max(float(octave.std()), 1e-6)
+    elif kind == 1:  # stripes between two random colours, random angle/frequency
+        angle = rng.uniform(0, np.pi)
+        freq = rng.uniform(3, 12)
+        phase = np.sin(2 * np.pi * freq * (xx * np.cos(angle) + yy * np.sin(angle)))
+        t = (phase[..., None] + 1) / 2
+        c1, c2 = rng.random(3), rng.random(3)
+        field = t * c1 + (1 - t) * c2
+    else:  # soft blobs on a random base colour
+        field = np.broadcast_to(rng.random(3), (size, size, 3)).copy()
+        for _ in range(rng.integers(6, 16)):
+            cy, cx = rng.random(2)
+            r = rng.uniform(0.04, 0.2)
+            alpha = np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * r * r))[..., None]
+            field = alpha * rng.random(3) + (1 - alpha) * field
+    field = (field - field.min()) / max(float(np.ptp(field)), 1e-6)
+    return (field * 255).astype(np.uint8)
+
+
+class Backgrounds:
+    """Background images for one split, grouped like videos.
+
+    ``directory=None``: procedural images (train seeds 0.., eval seeds
+    100000..), one image per "video".  A DAVIS-2017 ``JPEGImages/480p`` folder
+    (or the DAVIS root holding it): the official train / val video lists.  Any
+    other folder: all images found recursively, grouped by their parent folder
+    (a flat folder makes every image its own group); groups are sorted and
+    every 5th group (index 4, 9, ...) is held out for ``split="eval"``; if that
+    leaves either split empty, both use all groups.  The difficulty limits the
+    number of groups as in the original suite (easy 4, medium 8, hard all; for
+    procedural images hard = 60 train / 30 eval, the DAVIS counts).
+    """
+
+    def __init__(self, directory: str | None, split: str, difficulty: str):
+        limit = _DIFFICULTY_NUM_VIDEOS[difficulty]
+        self._cache: dict = {}
+        if directory is None:
+            count = limit or (len(DAVIS17_TRAIN) if split == "train" else len(DAVIS17_VAL))
+            offset = 0 if split == "train" else 100_000
+            self.groups = [[offset + i] for i in range(count)]
+            self.source = f"procedural ({count} images)"
+            return
+        root = Path(directory).expanduser()
+        if not root.is_dir():
+            raise EnvError(f"backgrounds dir {directory!r} does not exist or is not a directory")
+        davis = root / "JPEGImages" / "480p"
+        if davis.is_dir():
+            root = davis
+        subdirs = {p.name for p in root.iterdir() if p.is_dir()}
+        if subdirs & set(DAVIS17_TRAIN + DAVIS17_VAL):
+            names = DAVIS17_TRAIN if split == "train" else DAVIS17_VAL
+            groups = [sorted(p for p in (root / n).iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
+                      for n in names if n in subdirs]
+            groups = [g for g in groups if g]
+            if not groups:
+                raise EnvError(f"backgrounds dir {directory!r} looks like DAVIS but holds no "
+                               f"{'train' if split == 'train' else 'val'} videos with images")
+            self.source = f"DAVIS 2017 {split} ({len(groups)} videos)"
+        else:
+            images = sorted(p for p in root.rglob("*")
+                            if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+            if not images:
+                raise EnvError(f"backgrounds dir {directory!r} holds no images "
+                               f"({', '.join(sorted(_IMAGE_SUFFIXES))})")
+            by_parent = collections.defaultdict(list)
+            for p in images:
+                by_parent[p.parent].append(p)
+            groups = ([by_parent[k] for k in sorted(by_parent)] if len(by_parent) > 1
+                      else [[p] for p in images])
+            train = [g for i, g in enumerate(groups) if i % 5 != 4]
+            held_out = [g for i, g in enumerate(groups) if i % 5 == 4]
+            if train and held_out:
+                groups = train if split == "train" else held_out
+            self.source = f"{directory} ({len(groups)} groups)"
+        self.groups = groups[:limit] if limit else groups
+
+    def sample(self, rng: np.random.Generator, side: int) -> np.ndarray:
+        """A random image (random group, then random frame), uint8 (side, side, 3)."""
+        group = self.groups[rng.integers(len(self.groups))]
+        item = group[rng.integers(len(group))]
+        key = (item, side)
+        if key not in self._cache:
+            if isinstance(item, int):
+                img = Image.fromarray(procedural_background(item))
+            else:
+                img = Image.open(item).convert("RGB")
+                # Centre-crop to a square so the image is not stretched.
+                w, h = img.size
+                s = min(w, h)
+                img = img.crop(((w - s) // 2, (h - s) // 2, (w - s) // 2 + s, (h - s) // 2 + s))
+            arr = np.asarray(img.resize((side, side), Image.BILINEAR), dtype=np.uint8)
+            # Bound memory: procedural images are cheap to regenerate, files
+            # cheap to reload; keep at most a few dozen resized images.
+            if len(self._cache) > 64:
+                self._cache.clear()
+            self._cache[key] = arr
+        return self._cache[key]
+
+
+class _Distractions:
+    """Distracting Control Suite perturbations applied to a dm_control model.
+
+    * background: the skybox texture is turned into a single square face
+      (``tex_height = tex_width``: MuJoCo then repeats that face on all six
+      cube sides) and a random image is written into it every episode; the
+      ground plane gets the original suite's alpha so the background shows
+      through it for ball_in_cup.
+    * camera (optional, ``camera_distraction=s``): static per-episode random
+      offset of the camera position (up to s x its distance) and rotation
+      (up to s x 30 degrees) -- a simplified, non-drifting version of the
+      original suite's camera distraction.
+    * colour (optional, ``color_distraction=s``): per-episode random shift in
+      [-s, s] of the RGB of the robot's materials / geoms.
+    """
+
+    def __init__(self, model, domain, geom_is_robot, camera_id, backgrounds,
+                 camera_scale=0.0, color_scale=0.0):
+        self.model = model
+        self.backgrounds = backgrounds
+        self.camera_id = camera_id
+        self.camera_scale = camera_scale
+        self.color_scale = color_scale
+        self.sky = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, "skybox")
+        if self.sky < 0:
+            skies = np.flatnonzero(model.tex_type == int(mujoco.mjtTexture.mjTEXTURE_SKYBOX))
+            if not len(skies):
+                raise EnvError(f"dm_control domain {domain!r} has no skybox; cannot add backgrounds")
+            self.sky = int(skies[0])
+        self.side = int(model.tex_width[self.sky])
+        # One square face; the texture buffer (6 faces) is larger than needed,
+        # so the first side*side*nchannel bytes hold the image.
+        model.tex_height[self.sky] = self.side
+        self.nchannel = int(model.tex_nchannel[self.sky])
+        grid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "grid")
+        if grid >= 0:
+            model.mat_rgba[grid, 3] = _GROUND_ALPHA.get(domain, 1.0)
+        # Originals, restored before each episode's perturbation.
+        # Tracking cameras (walker's trackcom) are placed from cam_pos0 /
+        # cam_mat0, fixed ones from cam_pos / cam_quat: perturb both.
+        self.cam_pos_orig = model.cam_pos[camera_id].copy()
+        self.cam_quat_orig = model.cam_quat[camera_id].copy()
+        self.cam_pos0_orig = model.cam_pos0[camera_id].copy()
+        self.cam_mat0_orig = model.cam_mat0[camera_id].copy()
+        self.robot_mats = np.unique(model.geom_matid[geom_is_robot & (model.geom_matid >= 0)])
+        self.robot_plain_geoms = np.flatnonzero(geom_is_robot & (model.geom_matid < 0))
+        self.mat_rgba0 = model.mat_rgba.copy()
+        self.geom_rgba0 = model.geom_rgba.copy()
+
+    def apply(self, rng: np.random.Generator) -> list[int]:
+        """Perturb the model for a new episode; returns textures to re-upload."""
+        m = self.model
+        img = self.backgrounds.sample(rng, self.side)
+        if self.nchannel == 4:
+            img = np.concatenate([img, np.full(img.shape[:2] + (1,), 255, np.uint8)], axis=-1)
+        adr = int(m.tex_adr[self.sky])
+        m.tex_data[adr: adr + img.size] = img.reshape(-1)
+        if self.camera_scale > 0:
+            s, c = self.camera_scale, self.camera_id
+            offset = rng.uniform(-s, s, 3)
+            m.cam_pos[c] = self.cam_pos_orig + offset * np.linalg.norm(self.cam_pos_orig)
+            m.cam_pos0[c] = self.cam_pos0_orig + offset * np.linalg.norm(self.cam_pos0_orig)
+            axis = rng.normal(size=3)
+            dq = np.zeros(4)
+            mujoco.mju_axisAngle2Quat(dq, axis / np.linalg.norm(axis), rng.uniform(-s, s) * np.pi / 6)
+            q = np.zeros(4)
+            mujoco.mju_mulQuat(q, self.cam_quat_orig, dq)
+            m.cam_quat[c] = q
+            q0, mat = np.zeros(4), np.zeros(9)
+            mujoco.mju_mat2Quat(q0, self.cam_mat0_orig)
+            mujoco.mju_mulQuat(q, q0, dq)
+            mujoco.mju_quat2Mat(mat, q)
+            m.cam_mat0[c] = mat.reshape(m.cam_mat0[c].shape)
+        if self.color_scale > 0:
+            s = self.color_scale
+            m.mat_rgba[:] = self.mat_rgba0
+            m.geom_rgba[:] = self.geom_rgba0
+            for mat in self.robot_mats:
+                m.mat_rgba[mat, :3] = np.clip(self.mat_rgba0[mat, :3] + rng.uniform(-s, s, 3), 0, 1)
+            for g in self.robot_plain_geoms:
+                m.geom_rgba[g, :3] = np.clip(self.geom_rgba0[g, :3] + rng.uniform(-s, s, 3), 0, 1)
+        return [self.sky]
+
+
+# ----------------------------------------------------------------------------
+# Suite backends: physics, reward, episode bookkeeping (no rendering)
+# ----------------------------------------------------------------------------
+
+class _DMCBackend:
+    """dm_control suite task; episodes of 1000 physics-control steps."""
+
+    has_success = False
+    flip = False
+    mask_scale = 1       # masks rendered at the observation size
+    opening = False
+
+    def __init__(self, domain: str, task: str, seed: int):
+        from dm_control import suite
+        self.env = suite.load(domain, task, task_kwargs={"random": seed})
+        self.physics = self.env.physics
+        self.model = self.physics.model.ptr
+        self.data = self.physics.data.ptr
+        self.domain = domain
+        self.camera = 2 if domain == "quadruped" else 0   # DrQ-v2 convention
+        self.robot_root = _DMC_ROBOT_ROOTS.get(domain) or self._default_root()
+        spec = self.env.action_spec()
+        self._low, self._high = spec.minimum.astype(np.float64), spec.maximum.astype(np.float64)
+        self.action_dim = int(spec.shape[0])
+
+    def _default_root(self) -> str:
+        m = self.model
+        for b in range(1, m.nbody):
+            if m.body_parentid[b] != 0:
+                continue
+            sub = np.zeros(m.nbody, bool)
+            sub[b] = True
+            for c in range(b + 1, m.nbody):
+                sub[c] = sub[m.body_parentid[c]]
+            if np.any(sub[m.jnt_bodyid]):
+                return m.body(b).name
+        return m.body(1).name
+
+    def reset(self, seed: int) -> None:
+        # dm_control tasks draw initial states from task.random.
+        self.env.task._random = np.random.RandomState(seed)
+        self.env.reset()
+
+    def step(self, action: np.ndarray):
+        # Agent actions live in [-1, 1]; map to the actuator spec.
+        a = self._low + (np.asarray(action, np.float64) + 1.0) * 0.5 * (self._high - self._low)
+        ts = self.env.step(a)
+        reward = float(ts.reward or 0.0)
+        if ts.last():
+            # discount 0 = true termination, 1 = time limit.
+            terminated = ts.discount == 0.0
+            return reward, terminated, not terminated, {}
+        return reward, False, False, {}
+
+    def close(self):
+        self.env.close()
+
+
+class _GymBackend:
+    """Gymnasium-Robotics Kitchen / Adroit via gym.make (TimeLimit included)."""
+
+    flip = False
+    mask_scale = 3
+    opening = True
+    has_success = True
+
+    def __init__(self, suite: str, task: str, seed: int):
+        # ``seed`` is unused here: these envs draw everything random at reset,
+        # which SEAREnv seeds from its own generator.
+        import gymnasium_robotics
+        gym.register_envs(gymnasium_robotics)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            if suite == "kitchen":
+                self.env = gym.make("FrankaKitchen-v1", tasks_to_complete=[_KITCHEN_TASKS[task]],
+                                    max_episode_steps=280, disable_env_checker=True)
+                self.robot_root = "panda0_link0"
+                # The SEAR authors' kitchen camera (a free camera).
+                cam = mujoco.MjvCamera()
+                cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+                cam.lookat[:] = (-0.3, 0.5, 2.0)
+                cam.distance, cam.azimuth, cam.elevation = 1.86, 90.0, -60.0
+                self.camera = cam
+            else:
+                self.env = gym.make(_ADROIT_TASKS[task], disable_env_checker=True)
+                self.robot_root = "forearm"
+                self.camera = "fixed"
+        self.suite = suite
+        u = self.env.unwrapped
+        self.model, self.data = u.model, u.data
+        self.action_dim = int(self.env.action_space.shape[0])
+
+    def reset(self, seed: int) -> None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.env.reset(seed=seed)
+
+    def step(self, action):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            _, reward, terminated, truncated, info = self.env.step(
+                np.asarray(action, dtype=self.env.action_space.dtype))
+        if self.suite == "kitchen":
+            # Sparse: 1 per completed task; success = every task completed.
+            success = len(info["episode_task_completions"]) == len(self.env.unwrapped.goal)
+        else:
+            success = bool(info["success"])   # Adroit's goal_achieved
+        return float(reward), bool(terminated), bool(truncated), {"success": success}
+
+    def close(self):
+        self.env.close()
+
+
+class _MetaWorldBackend:
+    """Meta-World v3 MT1 task with one fixed task variation per instance.
+
+    The goal-observable class freezes the random goal/object placement that it
+    drew from the construction seed, so the env seed picks the variation once
+    (MT1 would re-sample on every reset).  Episodes: 500 env steps.
+    """
+
+    flip = True        # v3's 'corner' camera renders upside down
+    mask_scale = 3
+    opening = True
+    has_success = True
+
+    def __init__(self, task: str, seed: int):
+        from metaworld.env_dict import ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
+        cls = ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE[f"{task}-v3-goal-observable"]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.env = cls(seed=seed)
+        self.model, self.data = self.env.model, self.env.data
+        self.camera = "corner"
+        self.robot_root = "base"
+        self.action_dim = int(self.env.action_space.shape[0])
+
+    def reset(self, seed: int) -> None:
+        self.env.seed(seed)
+        self.env.reset()
+
+    def step(self, action):
+        _, reward, terminated, truncated, info = self.env.step(np.asarray(action, np.float32))
+        return float(reward), bool(terminated), bool(truncated), {"success": bool(info["success"])}
+
+    def close(self):
+        self.env.close()
+
+
+# ----------------------------------------------------------------------------
+# The SEAR env: rendering, mask pipeline, action repeat, frame stack
+# ----------------------------------------------------------------------------
+
+# Envs not yet closed.  Closed at interpreter exit while EGL still works;
+# otherwise the renderers' __del__ runs after EGL teardown and prints errors.
+# dm_control registers an atexit eglTerminate when it is first imported, so
+# the hook is re-registered at every env construction to run before it (LIFO).
+_LIVE_ENVS: "weakref.WeakSet[SEAREnv]" = weakref.WeakSet()
+
+
+def _close_live_envs():
+    for env in list(_LIVE_ENVS):
+        env.close()
+
+
+class SEAREnv(gym.Env):
+    """Pixel + robot-mask env with action repeat and frame stacking.
+
+    Attributes useful beyond the contract: ``robot_root`` (root body name),
+    ``geom_is_robot`` (bool per geom), ``model`` / ``data`` (raw MuJoCo),
+    ``segmentation()`` (raw segmentation at mask resolution, before flipping
+    and downsampling), ``mask_scale`` (segmentation / observation size).
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, backend, *, name: str, seed: int, frame_stack: int, action_repeat: int,
+                 size: int, mask_noise: float, mask_approx: bool, mask_downsample: str,
+                 render_quality: str, render_mask: bool = True,
+                 distractions_kwargs: dict | None = None):
+        self.name = name
+        self.backend = backend
+        self.model, self.data = backend.model, backend.data
+        self.robot_root = backend.robot_root
+        self.geom_is_robot = robot_geoms(self.model, self.robot_root)
+        self.frame_stack, self.action_repeat, self.size = frame_stack, action_repeat, size
+        self.mask_noise, self.mask_approx, self.mask_downsample = mask_noise, mask_approx, mask_downsample
+        self.mask_scale = backend.mask_scale
+        self.render_quality = render_quality
+        # False: skip segmentation, obs["mask"] is all zeros (mask-free baselines).
+        self.render_mask = render_mask
+
+        m = self.model
+        if render_quality == "fast":
+            # No shadows, no multisampling (must be set before the GL context
+            # is created).  Everything else (lights, reflections) unchanged.
+            m.light_castshadow[:] = 0
+            m.vis.quality.offsamples = 0
+        seg_size = size * self.mask_scale
+        m.vis.global_.offwidth = max(m.vis.global_.offwidth, seg_size)
+        m.vis.global_.offheight = max(m.vis.global_.offheight, seg_size)
+
+        self._distractions = None
+        if distractions_kwargs is not None:
+            cam_id = backend.camera
+            self._distractions = _Distractions(m, backend.domain, self.geom_is_robot, cam_id,
+                                               **distractions_kwargs)
+
+        # One renderer for RGB; a second one for segmentation when masks are
+        # rendered at a higher resolution.
+        self._rgb_renderer = mujoco.Renderer(m, size, size)
+        if seg_size == size:
+            self._seg_renderer = self._rgb_renderer
+        else:
+            self._seg_renderer = mujoco.Renderer(m, seg_size, seg_size)
+
+        self.action_space = spaces.Box(-1.0, 1.0, (backend.action_dim,), np.float32)
+        self.observation_space = spaces.Dict({
+            "pixels": spaces.Box(0, 255, (3 * frame_stack, size, size), np.uint8),
+            "mask": spaces.Box(0, 1, (frame_stack, size, size), np.uint8),
+        })
+        self._rng = np.random.default_rng(seed)
+        self._frames: collections.deque = collections.deque(maxlen=frame_stack)
+        self._masks: collections.deque = collections.deque(maxlen=frame_stack)
+        self._needs_reset = True
+        self._closed = False
+        _LIVE_ENVS.add(self)
+        atexit.unregister(_close_live_envs)
+        atexit.register(_close_live_envs)
+
+    # -- rendering ------------------------------------------------------------
+    def _upload_textures(self, textures):
+        renderers = {id(r): r for r in (self._rgb_renderer, self._seg_renderer)}.values()
+        for r in renderers:
+            # mujoco.Renderer keeps its GL / MjrContext private; re-uploading
+            # a texture needs both (MuJoCo has no other way to refresh one).
+            r._gl_context.make_current()
+            for t in textures:
+                mujoco.mjr_uploadTexture(self.model, r._mjr_context, t)
+
+    def segmentation(self) -> np.ndarray:
+        """Raw segmentation (H, W, 2) int32 at mask resolution, camera orientation."""
+        r = self._seg_renderer
+        r.enable_segmentation_rendering()
+        try:
+            r.update_scene(self.data, camera=self.backend.camera)
+            return r.render().copy()
+        finally:
+            r.disable_segmentation_rendering()
+
+    def _render(self):
+        r = self._rgb_renderer
+        r.update_scene(self.data, camera=self.backend.camera)
+        rgb = r.render()
+        mask = self._mask() if self.render_mask else np.zeros((self.size, self.size), bool)
+        if self.backend.flip:
+            rgb = rgb[::-1, ::-1]
+        return np.ascontiguousarray(rgb.transpose(2, 0, 1)), mask
+
+    def clean_mask(self) -> np.ndarray:
+        """Current robot mask (size, size) bool before noise / approximation."""
+        full = robot_pixels(self.segmentation(), self.geom_is_robot)
+        if self.backend.opening:
+            # Remove one-pixel artifacts (thin slivers at mesh seams/edges).
+            full = ndimage.binary_opening(full)
+        mask = downsample_mask(full, self.mask_scale, self.mask_downsample)
+        if self.backend.flip:
+            mask = mask[::-1, ::-1]
+        return mask
+
+    def _mask(self) -> np.ndarray:
+        mask = self.clean_mask()
+        if self.mask_approx:
+            mask = _approximate_mask(mask)
+        if self.mask_noise > 0:
+            mask = mask & (self._rng.random(mask.shape) >= self.mask_noise)
+        return mask
+
+    def _obs(self):
+        return {"pixels": np.concatenate(list(self._frames), axis=0),
+                "mask": np.stack(list(self._masks)).astype(np.uint8)}
+
+    # -- gymnasium API ------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        episode_seed = int(self._rng.integers(2**31 - 1))
+        if self._distractions is not None:
+            # Before the physics reset: its mj_forward places the (perturbed) camera.
+            self._upload_textures(self._distractions.apply(self._rng))
+        self.backend.reset(episode_seed)
+        rgb, mask = self._render()
+        for _ in range(self.frame_stack):
+            self._frames.append(rgb)
+            self._masks.append(mask)
+        self._needs_reset = False
+        return self._obs(), {}
+
+    def step(self, action):
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step() (episode over or never started)")
+        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        total, terminated, truncated, info = 0.0, False, False, {}
+        success = False
+        for _ in range(self.action_repeat):
+            reward, terminated, truncated, info = self.backend.step(action)
+            total += reward
+            success = success or bool(info.get("success", False))
+            if terminated or truncated:
+                break
+        if self.backend.has_success:
+            info = {**info, "success": success}
+        rgb, mask = self._render()
+        self._frames.append(rgb)
+        self._masks.append(mask)
+        self._needs_reset = terminated or truncated
+        return self._obs(), total, bool(terminated), bool(truncated), info
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        _LIVE_ENVS.discard(self)
+        for r in {id(r): r for r in (self._rgb_renderer, self._seg_renderer)}.values():
+            r.close()
+        self.backend.close()
+
+
+def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: int | None = None,
+             size: int = 84, mask_noise: float = 0.0, mask_approx: bool = False,
+             backgrounds: str | None = None, difficulty: str = "hard",
+             render_quality: str = "paper", split: str = "train",
+             mask_downsample: str = "majority", camera_distraction: float = 0.0,
+             color_distraction: float = 0.0, render_mask: bool = True) -> SEAREnv:
+    """Build a SEAR pixel env.  See the module docstring for the contract.
+
+    ``backgrounds``/``difficulty``/``split``/``camera_distraction``/
+    ``color_distraction`` only matter for ``*-distracting`` envs.
+    ``difficulty`` picks the number of background videos; the camera/colour
+    distraction scales are given explicitly (the original suite's values per
+    difficulty are 0.1 / 0.2 / 0.3) and default to off, as in the paper.
+    ``mask_downsample``: "majority" (default) or "stride" (the authors').
+    ``render_mask=False`` skips the segmentation render (obs["mask"] is then
+    all zeros), for mask-free baselines.
+    """
+    suite, args = _parse_name(name)
+    if difficulty not in _DIFFICULTY_NUM_VIDEOS:
+        raise EnvError(f"difficulty must be one of easy, medium, hard; got {difficulty!r}")
+    if render_quality not in ("paper", "fast"):
+        raise EnvError(f"render_quality must be 'paper' or 'fast'; got {render_quality!r}")
+    if split not in ("train", "eval"):
+        raise EnvError(f"split must be 'train' or 'eval'; got {split!r}")
+    if mask_downsample not in ("majority", "stride"):
+        raise EnvError(f"mask_downsample must be 'majority' or 'stride'; got {mask_downsample!r}")
+    if not 0.0 <= mask_noise <= 1.0:
+        raise EnvError(f"mask_noise must be in [0, 1]; got {mask_noise}")
+    if frame_stack < 1 or size < 1:
+        raise EnvError(f"frame_stack and size must be positive; got {frame_stack}, {size}")
+    if action_repeat is None:
+        action_repeat = default_action_repeat(name)
+    if action_repeat < 1:
+        raise EnvError(f"action_repeat must be >= 1; got {action_repeat}")
+    if backgrounds is not None and suite != "distracting":
+        raise EnvError(f"backgrounds only apply to *-distracting envs, not {name!r}")
+
+    distractions_kwargs = None
+    if suite == "distracting":
+        # Validate the backgrounds before paying for physics construction.
+        bgs = Backgrounds(backgrounds, split, difficulty)
+        distractions_kwargs = dict(backgrounds=bgs, camera_scale=float(camera_distraction),
+                                   color_scale=float(color_distraction))
+    if suite in ("dmc", "distracting"):
+        backend = _DMCBackend(*args, seed=seed)
+    elif suite == "metaworld":
+        backend = _MetaWorldBackend(*args, seed=seed)
+    else:
+        backend = _GymBackend(suite, *args, seed=seed)
+    return SEAREnv(backend, name=name, seed=seed, frame_stack=frame_stack,
+                   action_repeat=action_repeat, size=size, mask_noise=mask_noise,
+                   mask_approx=mask_approx, mask_downsample=mask_downsample,
+                   render_quality=render_quality, render_mask=render_mask,
+                   distractions_kwargs=distractions_kwargs)
+
+
+# ----------------------------------------------------------------------------
+# Pictures
+# ----------------------------------------------------------------------------
+
+GALLERY_ENVS = ("walker-walk-distracting", "cup-catch-distracting", "metaworld-door-open",
+                "kitchen-kettle", "adroit-door")
+
+
+def _overlay(rgb_hwc: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    out = rgb_hwc.astype(np.float32)
+    out[mask] = 0.45 * out[mask] + 0.55 * np.array([255, 40, 200])
+    return out.astype(np.uint8)
+
+
+def gallery(path: str, names=GALLERY_ENVS, *, backgrounds=None, render_quality="paper",
+            steps: int = 10, seed: int = 0) -> None:
+    """Save RGB | mask | overlay for each env (after a few random steps)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for i, name in enumerate(names):
+        # A different seed per row so that distracting envs show different backgrounds.
+        env = make_env(name, seed=seed + i, frame_stack=1, render_quality=render_quality,
+                       backgrounds=backgrounds if name.endswith("-distracting") else None)
+        obs, _ = env.reset(seed=seed + i)
+        rng = np.random.default_rng(seed + i)
+        for _ in range(steps):
+            obs, _, term, trunc, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
+            if term or trunc:
+                obs, _ = env.reset()
+        rgb = obs["pixels"][-3:].transpose(1, 2, 0)
+        mask = obs["mask"][-1].astype(bool)
+        rows.append((name, rgb, mask))
+        env.close()
+    fig, axes = plt.subplots(len(rows), 3, figsize=(7.5, 2.5 * len(rows)))
+    axes = np.atleast_2d(axes)
+    for i, (name, rgb, mask) in enumerate(rows):
+        for j, (img, title) in enumerate([(rgb, "RGB"), (mask, "robot mask"),
+                                          (_overlay(rgb, mask), "overlay")]):
+            ax = axes[i, j]
+            ax.imshow(img, cmap="gray" if img.ndim == 2 else None, interpolation="nearest",
+                      vmin=0, vmax=1 if img.ndim == 2 else None)
+            ax.set_xticks([]), ax.set_yticks([])
+            if j == 0:
+                ax.set_ylabel(name, fontsize=8)
+            if i == 0:
+                ax.set_title(title, fontsize=10)
+        axes[i, 1].set_xlabel(f"mask fraction {mask.mean():.3f}", fontsize=8)
+    fig.suptitle(f"SEAR observations ({rows[0][1].shape[0]}x{rows[0][1].shape[1]}, "
+                 f"render_quality={render_quality})", fontsize=10)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def mask_downsample_figure(path: str, name: str = "metaworld-door-open", seed: int = 0) -> None:
+    """Authors' stride-3 downsampling vs 3x3 majority on one Sawyer frame."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    env = make_env(name, seed=seed, frame_stack=1, render_quality="fast")
+    obs, _ = env.reset(seed=seed)
+    full = robot_pixels(env.segmentation(), env.geom_is_robot)
+    opened = ndimage.binary_opening(full)
+    flip = (lambda a: a[::-1, ::-1]) if env.backend.flip else (lambda a: a)
+    stride = flip(downsample_mask(opened, env.mask_scale, "stride"))
+    majority = flip(downsample_mask(opened, env.mask_scale, "majority"))
+    env.close()
+    fig, axes = plt.subplots(1, 4, figsize=(12, 3.4))
+    panels = [(obs["pixels"][-3:].transpose(1, 2, 0), "RGB 84x84"),
+              (flip(opened), f"segmentation {opened.shape[0]}px + opening"),
+              (stride, f"authors: every 3rd pixel ({stride.mean():.3f})"),
+              (majority, f"3x3 majority ({majority.mean():.3f})")]
+    for ax, (img, title) in zip(axes, panels):
+        ax.imshow(img, cmap="gray" if img.ndim == 2 else None, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([]), ax.set_yticks([])
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--gallery", metavar="PNG", help="draw RGB | mask | overlay per suite")
+    parser.add_argument("--mask-figure", metavar="PNG",
+                        help="draw the stride vs majority mask downsampling comparison")
+    parser.add_argument("--envs", nargs="+", default=list(GALLERY_ENVS), help="envs for --gallery")
+    parser.add_argument("--backgrounds", metavar="DIR", help="background images for *-distracting")
+    parser.add_argument("--render-quality", default="paper", choices=["paper", "fast"])
+    parser.add_argument("--list", action="store_true", help="print the registered env names")
+    args = parser.parse_args(argv)
+    if not (args.gallery or args.mask_figure or args.list):
+        parser.error("nothing to do: give --gallery PNG, --mask-figure PNG or --list")
+    try:
+        for name in args.envs:   # fail fast, before any slow construction
+            _parse_name(name)
+        if args.backgrounds is not None:
+            Backgrounds(args.backgrounds, "train", "hard")
+        if args.list:
+            print("\n".join(env_names()))
+        if args.gallery:
+            gallery(args.gallery, args.envs, backgrounds=args.backgrounds,
+                    render_quality=args.render_quality)
+            print(f"wrote {args.gallery}")
+        if args.mask_figure:
+            mask_downsample_figure(args.mask_figure)
+            print(f"wrote {args.mask_figure}")
+    except EnvError as e:
+        print(f"envs.py: error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,512 @@
+"""Tests for envs.py: the pixel + robot-mask contract that sear.py relies on.
+
+Slow suites (Meta-World, Kitchen, Adroit) use render_quality="fast"; every env
+is constructed once per module and shared between tests (see ``get_env``).
+Run: MUJOCO_GL=egl pytest -q tests/test_envs.py
+"""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco
+import numpy as np
+import pytest
+from PIL import Image
+from scipy import ndimage
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import envs  # noqa: E402
+from envs import EnvError, make_env  # noqa: E402
+
+DMC = ["walker-walk", "cup-catch", "walker-walk-distracting", "cup-catch-distracting"]
+METAWORLD = ["metaworld-door-open", "metaworld-button-press-wall"]
+KITCHEN = ["kitchen-kettle", "kitchen-light", "kitchen-slider"]
+ADROIT = ["adroit-door", "adroit-hammer", "adroit-pen", "adroit-relocate"]
+ALL = DMC + METAWORLD + KITCHEN + ADROIT
+MANIPULATION = METAWORLD + KITCHEN + ADROIT
+
+# Plausible robot-mask fractions of an 84x84 frame right after reset.
+MASK_FRACTION = {"walker": (0.02, 0.25), "cup": (0.002, 0.05), "metaworld": (0.05, 0.5),
+                 "kitchen": (0.02, 0.4), "adroit": (0.03, 0.5)}
+
+
+def suite_of(name):
+    return name.split("-")[0]
+
+
+@pytest.fixture(scope="module")
+def get_env():
+    """Module-wide cache: constructing (and compiling) an env is the slow part."""
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            quality = "fast" if name in MANIPULATION else "paper"
+            cache[name] = make_env(name, seed=0, render_quality=quality)
+        return cache[name]
+
+    yield get
+    for env in cache.values():
+        env.close()
+
+
+def subtree_geoms(model, root_name):
+    """Independent re-implementation of the robot rule: walk up body parents."""
+    root = model.body(root_name).id
+    robot = np.zeros(model.ngeom, bool)
+    for g in range(model.ngeom):
+        b = model.geom_bodyid[g]
+        while b != 0 and b != root:
+            b = model.body_parentid[b]
+        robot[g] = b == root
+    return robot
+
+
+def raw_robot(env):
+    """Robot pixels of the raw segmentation, oriented like the observation."""
+    seg = env.segmentation()
+    robot = subtree_geoms(env.model, env.robot_root)
+    is_geom = seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)
+    mask = is_geom & robot[np.where(is_geom, seg[..., 0], 0)]
+    if env.backend.flip:
+        mask, seg = mask[::-1, ::-1], seg[::-1, ::-1]
+    return mask, seg
+
+
+# ----------------------------------------------------------------------------
+# Contract
+# ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ALL)
+def test_contract(get_env, name):
+    env = get_env(name)
+    stack, size = 3, 84
+    assert env.observation_space["pixels"].shape == (3 * stack, size, size)
+    assert env.observation_space["pixels"].dtype == np.uint8
+    assert env.observation_space["mask"].shape == (stack, size, size)
+    assert env.observation_space["mask"].dtype == np.uint8
+    assert env.action_space.dtype == np.float32
+    assert np.all(env.action_space.low == -1) and np.all(env.action_space.high == 1)
+
+    obs, info = env.reset(seed=1)
+    assert obs["pixels"].shape == (3 * stack, size, size) and obs["pixels"].dtype == np.uint8
+    assert obs["mask"].shape == (stack, size, size) and obs["mask"].dtype == np.uint8
+    assert set(np.unique(obs["mask"])) <= {0, 1}
+    # At reset the first frame fills the stack.
+    assert np.array_equal(obs["pixels"][:3], obs["pixels"][6:])
+    assert np.array_equal(obs["mask"][0], obs["mask"][2])
+    assert obs["pixels"].std() > 5  # not a blank image
+
+    rng = np.random.default_rng(0)
+    first = obs["pixels"][6:].copy()
+    for i in range(3):
+        obs, reward, terminated, truncated, info = env.step(
+            rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+        assert obs["pixels"].shape == (3 * stack, size, size)
+        assert isinstance(reward, float)
+        assert isinstance(terminated, bool) and isinstance(truncated, bool)
+        assert not terminated and not truncated
+        if i == 0:
+            # Oldest frame first: two copies of the reset frame, then the new one.
+            assert np.array_equal(obs["pixels"][:3], first)
+            assert np.array_equal(obs["pixels"][3:6], first)
+    assert ("success" in info) == (name in MANIPULATION)
+    # Something moved in the image over three random actions.
+    assert not np.array_equal(obs["pixels"][6:], first)
+
+
+def test_env_names_and_action_repeat():
+    names = envs.env_names()
+    for n in ALL:
+        assert n in names
+    assert len([n for n in names if n.startswith("metaworld-")]) == 50
+    assert "metaworld-hammer" in names and "metaworld-door-open-v3" not in names
+    assert envs.default_action_repeat("walker-walk") == 2
+    assert envs.default_action_repeat("walker-walk-distracting") == 2
+    assert envs.default_action_repeat("cheetah-run-distracting") == 2
+    assert envs.default_action_repeat("metaworld-hammer") == 2
+    assert envs.default_action_repeat("kitchen-kettle") == 1
+    assert envs.default_action_repeat("adroit-pen") == 1
+
+
+@pytest.mark.parametrize("name", ["walker-walk", "walker-walk-distracting",
+                                  "metaworld-door-open", "kitchen-kettle", "adroit-door"])
+def test_reset_seed_reproducible(get_env, name):
+    env = get_env(name)
+    a, _ = env.reset(seed=7)
+    b, _ = env.reset(seed=7)
+    for k in ("pixels", "mask"):
+        assert np.array_equal(a[k], b[k])
+
+
+def test_metaworld_variation_fixed_per_instance_chosen_by_seed(get_env):
+    env = get_env("metaworld-door-open")   # seed 0
+    same = make_env("metaworld-door-open", seed=0, render_quality="fast")
+    other = make_env("metaworld-door-open", seed=1, render_quality="fast")
+    a = env.reset(seed=3)[0]["pixels"]
+    b = env.reset()[0]["pixels"]           # next episode: same variation
+    c = same.reset(seed=3)[0]["pixels"]
+    d = other.reset(seed=3)[0]["pixels"]
+    goal0, goal1 = env.backend.env._target_pos.copy(), other.backend.env._target_pos.copy()
+    same.close(), other.close()
+    assert np.array_equal(a, b) and np.array_equal(a, c)
+    assert not np.array_equal(a, d) and not np.allclose(goal0, goal1)
+
+
+def test_time_limit_is_truncation():
+    env = make_env("walker-walk", seed=0, render_quality="fast")
+    env.reset(seed=0)
+    action = np.zeros(env.action_space.shape, np.float32)
+    for t in range(1, 501):
+        _, _, terminated, truncated, _ = env.step(action)
+        assert not terminated
+        if truncated:
+            break
+    # 1000 env steps at action repeat 2.
+    assert truncated and t == 500
+    with pytest.raises(RuntimeError):
+        env.step(action)
+    env.close()
+
+
+def test_metaworld_time_limit_stops_action_repeat(get_env):
+    env = get_env("metaworld-door-open")
+    env.reset(seed=0)
+    mw = env.backend.env
+    assert mw.max_path_length == 500
+    # One env step before the limit: the first of the two repeats ends the
+    # episode and the second must not run (Meta-World raises if stepped past).
+    mw.curr_path_length = mw.max_path_length - 1
+    _, _, terminated, truncated, info = env.step(np.zeros(4, np.float32))
+    assert truncated and not terminated and "success" in info
+    assert mw.curr_path_length == mw.max_path_length
+
+
+def test_kitchen_time_limit_is_280_steps(get_env):
+    env = get_env("kitchen-kettle")
+    env.reset(seed=0)
+    limit = env.backend.env  # gymnasium TimeLimit wrapper
+    assert limit.spec.max_episode_steps == 280
+    limit._elapsed_steps = 279
+    _, _, terminated, truncated, _ = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert truncated and not terminated
+
+
+def test_action_repeat_sums_rewards():
+    one = make_env("walker-walk", seed=3, action_repeat=1, render_quality="fast")
+    two = make_env("walker-walk", seed=3, action_repeat=2, render_quality="fast")
+    one.reset(seed=3), two.reset(seed=3)
+    a = np.full(one.action_space.shape, 0.3, np.float32)
+    r1 = one.step(a)[1] + one.step(a)[1]
+    o1 = one._obs()
+    o2, r2, *_ = two.step(a)
+    one.close(), two.close()
+    assert r2 == pytest.approx(r1)
+    assert np.array_equal(o1["pixels"][-3:], o2["pixels"][-3:])
+
+
+# ----------------------------------------------------------------------------
+# Masks: only robot geoms, plausible, in the right place
+# ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ALL)
+def test_mask_fraction_plausible(get_env, name):
+    env = get_env(name)
+    obs, _ = env.reset(seed=0)
+    lo, hi = MASK_FRACTION[suite_of(name)]
+    frac = obs["mask"][-1].mean()
+    assert lo < frac < hi, f"{name}: mask fraction {frac:.4f} outside ({lo}, {hi})"
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_mask_contains_only_robot_geoms(get_env, name):
+    env = get_env(name)
+    obs, _ = env.reset(seed=2)
+    mask = obs["mask"][-1].astype(bool)
+    robot, seg = raw_robot(env)
+    s = env.mask_scale
+    if s == 1:
+        # dm_control: masks are the segmentation itself.
+        assert np.array_equal(mask, robot)
+    else:
+        # Manipulation: opening + 3x3 majority.  Every mask pixel needs a
+        # majority of robot pixels in its block, and the mask keeps most of
+        # the robot.
+        counts = robot.reshape(84, s, 84, s).sum(axis=(1, 3))
+        assert np.all(counts[mask] > (s * s) // 2)
+        majority = counts > (s * s) // 2
+        iou = (mask & majority).sum() / (mask | majority).sum()
+        assert iou > 0.9, iou
+        # Exactly the paper's pipeline: binary opening, then 3x3 majority.
+        opened = ndimage.binary_opening(robot).reshape(84, s, 84, s).sum(axis=(1, 3))
+        assert np.array_equal(mask, opened > (s * s) // 2)
+
+
+def test_walker_mask_excludes_floor(get_env):
+    env = get_env("walker-walk")
+    obs, _ = env.reset(seed=0)
+    mask = obs["mask"][-1].astype(bool)
+    seg = env.segmentation()
+    floor = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] == env.model.geom("floor").id)
+    assert floor.sum() > 500           # the floor is in view...
+    assert not (mask & floor).any()    # ...and never in the mask
+
+
+def test_cup_mask_excludes_ball(get_env):
+    env = get_env("cup-catch")
+    obs, _ = env.reset(seed=0)
+    mask = obs["mask"][-1].astype(bool)
+    seg = env.segmentation()
+    ball = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] == env.model.geom("ball").id)
+    assert ball.sum() > 3
+    assert not (mask & ball).any()
+    assert env.robot_root == "cup"
+
+
+def test_sawyer_subtree_is_arm_not_table(get_env):
+    env = get_env("metaworld-door-open")
+    m = env.model
+    robot_bodies = {m.body(b).name for b in np.unique(m.geom_bodyid[env.geom_is_robot])}
+    assert {"right_l0", "right_l6", "hand", "rightpad", "leftpad"} <= robot_bodies
+    assert not robot_bodies & {"tablelink", "door", "door_link", "world"}
+
+
+@pytest.mark.parametrize("name", METAWORLD)
+def test_metaworld_upright(get_env, name):
+    env = get_env(name)
+    obs, _ = env.reset(seed=0)
+    _, seg = raw_robot(env)  # oriented like the observation
+    m = env.model
+    table_geoms = np.flatnonzero(m.geom_bodyid == m.body("tablelink").id)
+    table = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & np.isin(seg[..., 0], table_geoms)
+    rows = np.nonzero(table)[0] / env.mask_scale
+    assert rows.size > 0 and rows.mean() > 84 / 2, "table should be in the lower half"
+    # RGB and mask are flipped together: masked pixels are the red Sawyer.
+    rgb = obs["pixels"][-3:].transpose(1, 2, 0).astype(float)
+    mask = obs["mask"][-1].astype(bool)
+    red, green = rgb[mask][:, 0].mean(), rgb[mask][:, 1].mean()
+    assert red > 1.5 * green, (red, green)
+
+
+def test_mask_noise_subset_and_fraction():
+    clean_env = make_env("walker-walk", seed=4, render_quality="fast")
+    noisy_env = make_env("walker-walk", seed=4, render_quality="fast", mask_noise=0.3)
+    clean = clean_env.reset(seed=4)[0]["mask"].astype(bool)
+    noisy = noisy_env.reset(seed=4)[0]["mask"].astype(bool)
+    # The frame at reset is repeated; compare the newest one.
+    clean, noisy = clean[-1], noisy[-1]
+    assert np.all(noisy <= clean)      # noise only removes robot pixels
+    ratio = noisy.sum() / clean.sum()
+    assert 0.6 < ratio < 0.8, ratio   # about 1 - P
+    # Reproducible from the seed, different for another seed.
+    again = noisy_env.reset(seed=4)[0]["mask"][-1].astype(bool)
+    other = noisy_env.reset(seed=5)[0]["mask"][-1].astype(bool)
+    assert np.array_equal(noisy, again)
+    assert not np.array_equal(noisy & clean, other & clean) or not np.array_equal(noisy, other)
+    clean_env.close(), noisy_env.close()
+
+
+@pytest.mark.parametrize("name", ["walker-walk", "metaworld-door-open"])
+def test_mask_approx_differs_but_overlaps(get_env, name):
+    base = get_env(name)
+    quality = base.render_quality
+    approx_env = make_env(name, seed=0, render_quality=quality, mask_approx=True)
+    clean = base.reset(seed=0)[0]["mask"][-1].astype(bool)
+    approx = approx_env.reset(seed=0)[0]["mask"][-1].astype(bool)
+    approx_env.close()
+    assert not np.array_equal(clean, approx)
+    iou = (clean & approx).sum() / (clean | approx).sum()
+    assert 0.5 < iou < 0.98, iou
+
+
+def test_render_mask_false_gives_empty_masks():
+    env = make_env("walker-walk", seed=0, render_quality="fast", render_mask=False)
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+    env.close()
+    assert obs["mask"].shape == (3, 84, 84) and not obs["mask"].any()
+    assert obs["pixels"].std() > 5
+
+
+def test_majority_vs_stride_downsample():
+    mask = np.zeros((9, 9), bool)
+    mask[0:3, 0:3] = True
+    mask[0, 0] = False           # a hole at a stride sample point
+    assert not envs.downsample_mask(mask, 3, "stride")[0, 0]
+    assert envs.downsample_mask(mask, 3, "majority")[0, 0]
+    mask[3, 3] = True            # a lone pixel does not win a majority
+    assert not envs.downsample_mask(mask, 3, "majority")[1, 1]
+
+
+# ----------------------------------------------------------------------------
+# Distracting Control: backgrounds
+# ----------------------------------------------------------------------------
+
+def sky(obs):
+    """The top rows of the newest frame: background for walker and cup."""
+    return obs["pixels"][-3:, :12].astype(float)
+
+
+def test_backgrounds_differ_between_episodes_and_reproduce(get_env):
+    env = get_env("walker-walk-distracting")
+    first = sky(env.reset(seed=11)[0])
+    second = sky(env.reset()[0])
+    assert np.abs(first - second).mean() > 5
+    again = sky(env.reset(seed=11)[0])
+    assert np.array_equal(first, again)
+    # A fresh instance with the same seeds sees the same episode.
+    other = make_env("walker-walk-distracting", seed=0)
+    assert np.array_equal(sky(other.reset(seed=11)[0]), first)
+    other.close()
+
+
+def test_backgrounds_never_enter_masks(get_env):
+    plain, distracting = get_env("walker-walk"), get_env("walker-walk-distracting")
+    plain.reset(seed=0)
+    distracting.reset(seed=3)
+    for _ in range(3):
+        # Same physics state in both: masks must be identical, whatever the background.
+        distracting.data.qpos[:] = plain.data.qpos
+        distracting.data.qvel[:] = plain.data.qvel
+        mujoco.mj_forward(distracting.model, distracting.data)
+        assert np.array_equal(plain.clean_mask(), distracting.clean_mask())
+        assert not np.array_equal(plain._render()[0], distracting._render()[0])
+        distracting.reset()
+        plain.step(np.ones(plain.action_space.shape, np.float32) * 0.5)
+
+
+def write_image(path, colour):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((32, 48, 3), colour, np.uint8)).save(path)
+
+
+def dominant_channel(obs):
+    return int(np.argmax(sky(obs).mean(axis=(1, 2))))
+
+
+def test_davis_layout_train_and_eval_videos(tmp_path):
+    frames = tmp_path / "DAVIS" / "JPEGImages" / "480p"
+    write_image(frames / "bear" / "00000.jpg", (230, 10, 10))        # train: red
+    write_image(frames / "bear" / "00001.jpg", (230, 10, 10))
+    write_image(frames / "blackswan" / "00000.jpg", (10, 10, 230))   # val: blue
+    train = make_env("walker-walk-distracting", backgrounds=str(tmp_path / "DAVIS"), split="train")
+    evalenv = make_env("walker-walk-distracting", backgrounds=str(frames), split="eval")
+    for seed in range(2):
+        assert dominant_channel(train.reset(seed=seed)[0]) == 0
+        assert dominant_channel(evalenv.reset(seed=seed)[0]) == 2
+    train.close(), evalenv.close()
+
+
+def test_image_folder_backgrounds(tmp_path):
+    colours = [(230, 10, 10), (10, 230, 10)]
+    for i, c in enumerate(colours):
+        write_image(tmp_path / "imgs" / f"{i}.png", c)
+    env = make_env("cup-catch-distracting", backgrounds=str(tmp_path / "imgs"), render_quality="fast")
+    seen = {dominant_channel(env.reset(seed=s)[0]) for s in range(8)}
+    env.close()
+    assert seen == {0, 1}
+
+
+def test_difficulty_controls_number_of_backgrounds(tmp_path):
+    for i in range(10):
+        write_image(tmp_path / f"video{i:02d}" / "00000.png", (i * 20, 0, 0))
+    easy = envs.Backgrounds(str(tmp_path), "train", "easy")
+    hard = envs.Backgrounds(str(tmp_path), "train", "hard")
+    held_out = envs.Backgrounds(str(tmp_path), "eval", "hard")
+    assert len(easy.groups) == 4 and len(hard.groups) == 8 and len(held_out.groups) == 2
+    assert not {str(g[0]) for g in hard.groups} & {str(g[0]) for g in held_out.groups}
+    assert len(envs.Backgrounds(None, "train", "hard").groups) == 60
+    assert len(envs.Backgrounds(None, "eval", "hard").groups) == 30
+    assert len(envs.Backgrounds(None, "train", "medium").groups) == 8
+
+
+def test_procedural_backgrounds_deterministic_and_varied():
+    a, b = envs.procedural_background(3), envs.procedural_background(3)
+    assert np.array_equal(a, b) and a.dtype == np.uint8 and a.shape == (256, 256, 3)
+    imgs = [envs.procedural_background(s).astype(float) for s in range(6)]
+    assert all(img.std() > 20 for img in imgs)
+    assert min(np.abs(imgs[i] - imgs[j]).mean() for i in range(6) for j in range(i)) > 10
+
+
+def test_camera_and_color_distraction_change_image_not_mask_rule():
+    base = make_env("walker-walk-distracting", seed=0, render_quality="fast")
+    moved = make_env("walker-walk-distracting", seed=0, render_quality="fast",
+                     camera_distraction=0.3, color_distraction=0.3)
+    a, b = base.reset(seed=1)[0], moved.reset(seed=1)[0]
+    assert not np.array_equal(a["mask"], b["mask"])        # camera moved
+    robot, _ = raw_robot(moved)
+    assert np.array_equal(b["mask"][-1].astype(bool), robot)  # still exactly the robot
+    base.close(), moved.close()
+
+
+# ----------------------------------------------------------------------------
+# Render quality
+# ----------------------------------------------------------------------------
+
+def test_fast_render_similar_to_paper(get_env):
+    paper = get_env("walker-walk")
+    fast = make_env("walker-walk", seed=0, render_quality="fast")
+    a, b = paper.reset(seed=0)[0], fast.reset(seed=0)[0]
+    fast.close()
+    assert np.array_equal(a["mask"], b["mask"])
+    diff = np.abs(a["pixels"].astype(float) - b["pixels"].astype(float))
+    assert 0 < diff.mean() < 12, diff.mean()   # shadows / antialiasing only
+
+
+# ----------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(name="foo"), "unknown env 'foo'"),
+    (dict(name="metaworld-flying"), "unknown env"),
+    (dict(name="kitchen-microwave"), "unknown env"),
+    (dict(name="walker-walk-distracting", backgrounds="/nonexistent/dir"), "does not exist"),
+    (dict(name="walker-walk", render_quality="ultra"), "render_quality"),
+    (dict(name="walker-walk-distracting", difficulty="insane"), "difficulty"),
+])
+def test_bad_input_raises_one_line_env_error(kwargs, match):
+    with pytest.raises(EnvError, match=match) as err:
+        make_env(**kwargs)
+    assert "\n" not in str(err.value)
+    assert isinstance(err.value, ValueError)
+
+
+def test_unknown_env_lists_valid_names():
+    with pytest.raises(EnvError) as err:
+        make_env("foo")
+    msg = str(err.value)
+    for part in ("walker-walk", "cup-catch", "distracting", "metaworld-", "kitchen-", "adroit-"):
+        assert part in msg
+    assert "\n" not in msg and len(msg) < 400
+
+
+def test_backgrounds_dir_without_images(tmp_path):
+    (tmp_path / "notes.txt").write_text("no images here")
+    with pytest.raises(EnvError, match="no images") as err:
+        make_env("walker-walk-distracting", backgrounds=str(tmp_path))
+    assert "\n" not in str(err.value)
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, str(ROOT / "envs.py"), *args], capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "MUJOCO_GL": "egl"})
+
+
+@pytest.mark.parametrize("args", [
+    ["--gallery", "out.png", "--envs", "foo"],
+    ["--gallery", "out.png", "--backgrounds", "/nonexistent/dir"],
+])
+def test_cli_bad_input_one_line_no_traceback(tmp_path, args):
+    args = [str(tmp_path / a) if a == "out.png" else a for a in args]
+    proc = run_cli(*args)
+    assert proc.returncode != 0
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "out.png").exists()
