@@ -69,9 +69,12 @@ class Config:
     max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
     mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
+    mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')")
     backgrounds: str = arg("", "Distracting Control: folder of images or DAVIS JPEGImages/480p ('' = built-in)")
     difficulty: str = arg("hard", "Distracting Control: easy | medium | hard (number of backgrounds)")
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)")
+    camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
+    color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
     seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
@@ -120,7 +123,8 @@ def validate(cfg: Config) -> None:
                  "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip"]:
         if getattr(cfg, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(cfg, name)}")
-    for name in ["discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio"]:
+    for name in ["discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio", "camera_distraction",
+                 "color_distraction"]:
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ConfigError(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(cfg, name)}")
     if cfg.method not in METHODS:
@@ -131,6 +135,8 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--mae-patch must divide 84, got {cfg.mae_patch}")
     if cfg.difficulty not in ("easy", "medium", "hard"):
         raise ConfigError(f"--difficulty must be easy, medium or hard, got '{cfg.difficulty}'")
+    if cfg.mask_downsample not in ("majority", "stride"):
+        raise ConfigError(f"--mask-downsample must be majority or stride, got '{cfg.mask_downsample}'")
     if cfg.render_quality not in ("paper", "fast"):
         raise ConfigError(f"--render-quality must be paper or fast, got '{cfg.render_quality}'")
 
@@ -842,7 +848,8 @@ def make_envs(cfg: Config):
     kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None, mask_noise=cfg.mask_noise,
                   mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
                   difficulty=cfg.difficulty, render_quality=cfg.render_quality,
-                  render_mask=METHODS[cfg.method].uses_mask)
+                  mask_downsample=cfg.mask_downsample, camera_distraction=cfg.camera_distraction,
+                  color_distraction=cfg.color_distraction, render_mask=METHODS[cfg.method].uses_mask)
     try:
         train_env = envs.make_env(cfg.env, seed=cfg.seed, split="train", **kwargs)
         eval_env = envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", **kwargs)

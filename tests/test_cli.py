@@ -74,6 +74,8 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--method", "nope"], "invalid choice"),
     (["--frames", "ten"], "invalid int value"),
     (["--resume", "does/not/exist"], "no such run directory"),
+    (["--env", "walker-walk-distracting", "--backgrounds", "does/not/exist"], "does not exist"),
+    (["--mask-downsample", "every-other"], "--mask-downsample must be"),
 ])
 def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
     r = run(args, tmp_path)
