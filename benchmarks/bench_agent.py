@@ -8,6 +8,7 @@ table; the ratio column is relative to drq measured in the same run.
 """
 import argparse
 import os
+import subprocess
 import sys
 import time
 
@@ -42,13 +43,37 @@ def updates_per_second(method, batch_size, updates, action_dim=6, device="cpu"):
     return updates / (time.perf_counter() - start)
 
 
+def compare_allocators(args):
+    """SEAR and DrQ update time with glibc's default pages and with sear.py's huge-page setting,
+    each measured in a fresh process (glibc reads GLIBC_TUNABLES only at start-up)."""
+    print(f"## glibc allocator: default vs huge pages (batch {args.batch_size})\n")
+    print("| method | default s/update | hugetlb=1 s/update | speed-up |\n|---|---|---|---|")
+    for m in args.methods:
+        times = []
+        for tunables in ("glibc.malloc.hugetlb=0", "glibc.malloc.hugetlb=1"):
+            out = subprocess.run([sys.executable, os.path.abspath(__file__), "--batch-size", str(args.batch_size),
+                                  "--updates", str(args.updates), "--methods", m, "--device", args.device,
+                                  "--updates-only"], env={**os.environ, "GLIBC_TUNABLES": tunables},
+                                 capture_output=True, text=True, check=True).stdout
+            times.append(float(out))
+        print(f"| {m} | {times[0]:.2f} | {times[1]:.2f} | {times[0] / times[1]:.2f}x |", flush=True)
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--methods", nargs="+", default=list(sear.METHODS))
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--compare-allocators", action="store_true",
+                   help="time each method with glibc's default pages and with huge pages")
+    p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.compare_allocators:
+        return compare_allocators(args)
+    if args.updates_only:  # one method, one number: the child process of --compare-allocators
+        print(1 / updates_per_second(args.methods[0], args.batch_size, args.updates, device=args.device))
+        return
 
     print("## Replay buffer footprint\n\n| action dim | bytes / transition | KB | 1M transitions |\n|---|---|---|---|")
     for a, b in replay_footprint():
@@ -64,4 +89,5 @@ def main():
 
 
 if __name__ == "__main__":
+    sear.reexec_with_huge_pages()  # the setting sear.py trains with (see --compare-allocators)
     main()
