@@ -1023,7 +1023,7 @@ def reexec_with_huge_pages():
     if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
         return
     os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, "glibc.malloc.hugetlb=1"]))
-    os.execv(sys.executable, [sys.executable, *sys.argv])
+    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
 
 
 class OneLineParser(argparse.ArgumentParser):
