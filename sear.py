@@ -945,6 +945,8 @@ def train(cfg: Config):
     ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
     while frame < cfg.frames:
         if frame >= next_eval:
+            print(("\n" if progress.tty else "") + f"evaluating at frame {frame} ({cfg.eval_episodes} episodes)",
+                  flush=True)
             eval_return, eval_success = evaluate(agent, eval_env, cfg, frame)
             row = {"frame": frame, "step": step, "episode": episode, "return": eval_return,
                    "wall_time": round(time.time() - start, 2)}
@@ -953,7 +955,7 @@ def train(cfg: Config):
             eval_log.write(row)
             if writer:
                 writer.add_scalar("eval/return", eval_return, frame)
-            print(("\n" if progress.tty else "") + f"eval @ frame {frame}: return {eval_return:.1f}"
+            print(f"eval @ frame {frame}: return {eval_return:.1f}"
                   + (f", success {eval_success:.2f}" if eval_success is not None else ""))
             next_eval += cfg.eval_every
             snapshot()
