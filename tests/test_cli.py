@@ -66,6 +66,12 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     assert [int(r["frame"]) for r in rows(run_dir / "train.csv")] == [16, 32, 48, 64, 80]
     assert only_run_dir(tmp_path) == run_dir  # no second run directory
 
+    # plot.py draws the real run's eval.csv
+    r = subprocess.run([sys.executable, str(ROOT / "plot.py"), str(tmp_path / "runs"), "--out", str(tmp_path / "c.png")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "sear" in r.stdout
+
 
 @pytest.mark.parametrize("args, message", [
     (["--env", "no-such-env"], "unknown env"),
