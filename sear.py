@@ -881,10 +881,9 @@ def evaluate(agent, env, cfg: Config, frame):
     return float(np.mean(returns)), (float(np.mean(successes)) if successes else None)
 
 
-def train(cfg: Config):
-    resume_state = None
+def train(cfg: Config, resume_state: dict | None = None):
+    """Train from scratch, or continue from `resume_state` (the snapshot of run dir cfg.resume)."""
     if cfg.resume:
-        resume_state = load_snapshot(cfg.resume)
         run_dir = cfg.resume
     device = pick_device(cfg.device)
     train_env, eval_env = make_envs(cfg)  # also resolves action_repeat 0 to the suite's default
@@ -1036,7 +1035,9 @@ class OneLineParser(argparse.ArgumentParser):
 RESUME_MAY_CHANGE = {"frames", "device", "save_buffer", "log_every", "resume"}
 
 
-def parse_args(argv=None) -> Config:
+def parse_args(argv=None) -> tuple[Config, dict | None]:
+    """The config from the flags; with --resume, the run's saved config (plus the few flags that may
+    change) and its snapshot."""
     parser = OneLineParser(prog="sear.py", description=__doc__.split("\n\n")[0])
     defaults = Config()
     for f in dataclasses.fields(Config):
@@ -1050,6 +1051,7 @@ def parse_args(argv=None) -> Config:
             parser.add_argument(flag, type=typ, default=argparse.SUPPRESS, help=help_text,
                                 choices=list(METHODS) if f.name == "method" else None)
     given = vars(parser.parse_args(argv))
+    state = None
     if given.get("resume"):
         state = load_snapshot(given["resume"])
         saved = state["config"]
@@ -1062,13 +1064,13 @@ def parse_args(argv=None) -> Config:
     else:
         cfg = Config(**given)
     validate(cfg)
-    return cfg
+    return cfg, state
 
 
 def main(argv=None):
     try:
-        cfg = parse_args(argv)
-        train(cfg)
+        cfg, resume_state = parse_args(argv)
+        train(cfg, resume_state)
     except ConfigError as e:
         print(f"sear.py: error: {e}", file=sys.stderr)
         return 2
