@@ -62,7 +62,7 @@ class Config:
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
     run_root: str = arg("runs", "folder that holds run directories")
     resume: str = arg("", "run directory to continue from its last snapshot")
-    save_buffer: bool = arg(False, "also snapshot the replay buffer, so a resumed run loses no data")
+    save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
@@ -786,7 +786,7 @@ def load_snapshot(run_dir):
     if not os.path.isdir(run_dir):
         raise ConfigError(f"--resume: no such run directory '{run_dir}'")
     if not os.path.exists(path):
-        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (a snapshot is written at every eval)")
+        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (one is written after the first evaluation's episode ends)")
     try:
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # corrupt or foreign file: say so in one line
@@ -912,7 +912,9 @@ def train(cfg: Config, resume_state: dict | None = None):
         set_rng_state(resume_state["rng"])
         sample_rng.bit_generator.state = resume_state["sample_rng"]
         c = resume_state["counters"]
-        step, episode, next_eval, wall_offset = c["step"], c["episode"] + 1, c["next_eval"], c["wall_time"]
+        step, episode, next_eval, wall_offset = c["step"], c["episode"], c["next_eval"], c["wall_time"]
+        if c["mid_episode"]:  # only the end-of-budget snapshot can cut an episode: drop its rest
+            episode += 1
         buffer_path = os.path.join(run_dir, "buffer.npz")
         if os.path.exists(buffer_path) and resume_state.get("buffer_saved"):
             buffer.load(buffer_path)
@@ -930,19 +932,29 @@ def train(cfg: Config, resume_state: dict | None = None):
     frame = step * cfg.action_repeat
     last_frame_time, last_frame = time.time(), frame
 
-    def snapshot():
+    def snapshot(mid_episode=False):
         payload = {"config": dataclasses.asdict(cfg), "agent": agent.state_dict(), "rng": rng_state(),
                    "sample_rng": sample_rng.bit_generator.state, "buffer_saved": cfg.save_buffer,
                    "counters": {"step": step, "episode": episode, "next_eval": next_eval,
-                                "wall_time": time.time() - start}}
+                                "mid_episode": mid_episode, "wall_time": time.time() - start}}
         if cfg.save_buffer:
             buffer.save(os.path.join(run_dir, "buffer.npz"))
         save_snapshot(run_dir, payload)
 
-    obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
-    buffer.add_first(obs)
-    ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
+    # Snapshots are taken between episodes (the first boundary after each evaluation): the next
+    # episode's reset seed follows from its number, so a resumed run (with --save-buffer) replays
+    # exactly what the uninterrupted run would have done.
+    need_reset, snapshot_due = True, False
     while frame < cfg.frames:
+        if need_reset:
+            if snapshot_due:
+                snapshot()
+                snapshot_due = False
+            obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
+            buffer.add_first(obs)
+            ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
+            need_reset = False
+
         if frame >= next_eval:
             print(("\n" if progress.tty else "") + f"evaluating at frame {frame} ({cfg.eval_episodes} episodes)",
                   flush=True)
@@ -957,7 +969,7 @@ def train(cfg: Config, resume_state: dict | None = None):
             print(f"eval @ frame {frame}: return {eval_return:.1f}"
                   + (f", success {eval_success:.2f}" if eval_success is not None else ""))
             next_eval += cfg.eval_every
-            snapshot()
+            snapshot_due = True
 
         if frame < cfg.seed_frames:
             action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
@@ -994,13 +1006,11 @@ def train(cfg: Config, resume_state: dict | None = None):
             progress.update(frame, fps, f"ep {episode} return {ep_return:.1f}", force=True)
             last_frame_time, last_frame = time.time(), frame
             episode += 1
-            obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
-            buffer.add_first(obs)
-            ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
+            need_reset = True
         else:
             progress.update(frame, fps, f"ep {episode} step {ep_len}")
 
-    snapshot()
+    snapshot(mid_episode=not need_reset)
     if progress.tty:
         print()
     print(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
