@@ -204,13 +204,18 @@ def robot_geoms(model: mujoco.MjModel, root_body: str) -> np.ndarray:
     root = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_body)
     if root < 0:
         raise RuntimeError(f"robot root body {root_body!r} not in model")
+    return body_subtree(model, root)[model.geom_bodyid]
+
+
+def body_subtree(model: mujoco.MjModel, root: int) -> np.ndarray:
+    """Boolean array (nbody,): body lies in the subtree of body id ``root``."""
     in_subtree = np.zeros(model.nbody, dtype=bool)
     in_subtree[root] = True
     # Bodies are stored in topological order (parent id < child id), so one
     # forward pass propagates membership from the root to all descendants.
     for b in range(root + 1, model.nbody):
         in_subtree[b] = in_subtree[model.body_parentid[b]]
-    return in_subtree[model.geom_bodyid]
+    return in_subtree
 
 
 def robot_pixels(seg: np.ndarray, geom_is_robot: np.ndarray) -> np.ndarray:
@@ -490,11 +495,7 @@ class _DMCBackend:
         for b in range(1, m.nbody):
             if m.body_parentid[b] != 0:
                 continue
-            sub = np.zeros(m.nbody, bool)
-            sub[b] = True
-            for c in range(b + 1, m.nbody):
-                sub[c] = sub[m.body_parentid[c]]
-            if np.any(sub[m.jnt_bodyid]):
+            if np.any(body_subtree(m, b)[m.jnt_bodyid]):
                 return m.body(b).name
         return m.body(1).name
 

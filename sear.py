@@ -1053,6 +1053,8 @@ def parse_args(argv=None) -> tuple[Config, dict | None]:
     for f in dataclasses.fields(Config):
         flag = "--" + f.name.replace("_", "-")
         help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})"
+        if f.name == "method":  # the METHODS table documents itself
+            help_text = "; ".join(f"{name}: {m.doc}" for name, m in METHODS.items()) + " (default: 'sear')"
         if f.type in ("bool", bool):
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
                                 help=help_text)
