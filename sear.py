@@ -60,6 +60,10 @@ class Config:
     seed: int = arg(1, "seeds python, numpy, torch and the environments")
     frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action repeat)")
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
+    precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
+                                 "actor, critic and losses stay fp32")
+    threads: int = arg(0, "torch CPU threads; 0 = every core this process may use. Several runs on one "
+                          "machine: give each cores/runs")
     run_root: str = arg("runs", "folder that holds run directories")
     resume: str = arg("", "run directory to continue from its last snapshot")
     save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
@@ -71,7 +75,7 @@ class Config:
     mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
     mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')")
     backgrounds: str = arg("", "Distracting Control: folder of images or DAVIS JPEGImages/480p ('' = built-in)")
-    difficulty: str = arg("hard", "Distracting Control: easy | medium | hard (number of backgrounds)")
+    difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all backgrounds (authors: medium)")
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)")
     camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
     color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
@@ -90,15 +94,15 @@ class Config:
     hidden_dim: int = arg(1024, "actor and critic MLP width")
     std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
     std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
-    std_frames: int = arg(500_000, "frames over which the std decays (DrQ-v2's yaml counts 500k agent steps)")
+    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action repeat)")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
     eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
     eval_episodes: int = arg(10, "episodes per evaluation, mean action")
     # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same 4:1 ratio) ---
-    recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (also ae and mae)")
+    recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (mae too; ae uses 2 x c1, as the authors)")
     mask_coef: float = arg(0.0025, "c2: weight of the mask loss")
     # --- baselines (each default from its source) ---
-    ae_latent_lambda: float = arg(1e-6, "ae: L2 penalty on the latent (SAC-AE, Yarats et al. 2019)")
+    ae_latent_lambda: float = arg(0.0, "ae: L2 penalty on the latent (authors' DrQ-AE: none; SAC-AE: 1e-6)")
     mae_ratio: float = arg(0.75, "mae: fraction of patches hidden (MAE, He et al. 2022)")
     mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)")
     curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder (CURL, Laskin et al. 2020)")
@@ -114,7 +118,7 @@ class ConfigError(ValueError):
 
 def validate(cfg: Config) -> None:
     positive = ["frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every", "eval_episodes",
-                "feature_dim", "latent_dim", "hidden_dim", "std_frames", "eval_every",
+                "feature_dim", "latent_dim", "hidden_dim", "std_steps", "eval_every",
                 "mae_patch", "curl_dim"]
     for name in positive:
         if getattr(cfg, name) <= 0:
@@ -137,6 +141,10 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--difficulty must be easy, medium or hard, got '{cfg.difficulty}'")
     if cfg.mask_downsample not in ("majority", "stride"):
         raise ConfigError(f"--mask-downsample must be majority or stride, got '{cfg.mask_downsample}'")
+    if cfg.precision not in ("fp32", "bf16"):
+        raise ConfigError(f"--precision must be fp32 or bf16, got '{cfg.precision}'")
+    if cfg.threads < 0:
+        raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
         raise ConfigError(f"--render-quality must be paper or fast, got '{cfg.render_quality}'")
 
@@ -199,11 +207,12 @@ class Decoder(nn.Module):
     """The decoder body shared by the mask and the reconstruction heads (appendix "Architecture").
     8x8 -> 35 (k4 s4, output_padding 3) -> 37 -> 39 -> 41 (k3 s1) -> 84 (k3 s2, output_padding 1)."""
 
-    def __init__(self, in_dim: int, out_channels: int):
+    def __init__(self, in_dim: int, out_channels: int, in_channels: int = 16):
         super().__init__()
-        self.fc = nn.Sequential(nn.Linear(in_dim, 16 * 8 * 8), nn.ReLU())
+        self.in_channels = in_channels  # 16 for SEAR's heads; DrQ-AE's decoder starts from 32 (authors' code)
+        self.fc = nn.Sequential(nn.Linear(in_dim, in_channels * 8 * 8), nn.ReLU())
         self.deconvs = nn.Sequential(
-            nn.ConvTranspose2d(16, 16, 4, stride=4, output_padding=3), nn.ReLU(),
+            nn.ConvTranspose2d(in_channels, 16, 4, stride=4, output_padding=3), nn.ReLU(),
             nn.ConvTranspose2d(16, 32, 3, stride=1), nn.ReLU(),
             nn.ConvTranspose2d(32, 32, 3, stride=1), nn.ReLU(),
             nn.ConvTranspose2d(32, 32, 3, stride=1), nn.ReLU(),
@@ -211,7 +220,7 @@ class Decoder(nn.Module):
         self.apply(weight_init)
 
     def forward(self, z):
-        return self.deconvs(self.fc(z).view(-1, 16, 8, 8))
+        return self.deconvs(self.fc(z).view(-1, self.in_channels, 8, 8))
 
 
 class TruncatedNormal(torch.distributions.Normal):
@@ -300,15 +309,22 @@ def shift_together(obs: torch.Tensor, mask: torch.Tensor):
 def summed_mse(pred, target, weight=None):
     """Squared error summed over channels and pixels, averaged over the batch (Eq. 5). c1 is
     relative to this sum, not to a per-pixel mean."""
-    err = (pred - target) ** 2
+    err = (pred.float() - target) ** 2  # fp32 even when the decoder ran in bf16
     if weight is not None:
         err = err * weight
     return err.flatten(1).sum(1).mean()
 
 
+def reconstruction_loss(pred, obs, weight=None):
+    """Eq. 5 on the [-0.5, 0.5]-normalised image. The prediction is clamped to that range first, as
+    in the authors' code (sear/agents/sear.py and drqv2AE.py): no gradient pushes a pixel that is
+    already past black or white any further."""
+    return summed_mse(pred.float().clamp(-0.5, 0.5), obs / 255.0 - 0.5, weight)
+
+
 def summed_bce(logits, target):
     """Binary cross-entropy on mask logits, summed over pixels, averaged over the batch (Eq. 4)."""
-    bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+    bce = F.binary_cross_entropy_with_logits(logits.float(), target, reduction="none")
     return bce.flatten(1).sum(1).mean()
 
 
@@ -347,23 +363,25 @@ class SearAux(AuxLoss):
 
     def forward(self, encoder, latent, obs, obs_aug, mask_aug):
         z, z_r = self.decoder_inputs(latent)
-        recon_loss = summed_mse(self.recon_decoder(z), obs_aug / 255.0 - 0.5)
+        recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)
         mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
         loss = self.c1 * recon_loss + self.c2 * mask_loss
         return loss, {"recon_loss": recon_loss.item(), "mask_loss": mask_loss.item()}
 
 
 class AEAux(AuxLoss):
-    """DrQ-AE (SAC-AE style): one reconstruction decoder on the whole latent, no mask."""
+    """DrQ-AE: one reconstruction decoder on the whole latent, no mask. As in the authors' code
+    (sear/agents/drqv2AE.py, cfgs/agent/drqv2AE.yaml), the decoder starts from 32 channels, the
+    loss weight is twice SEAR's c1, and there is no latent penalty (SAC-AE's is --ae-latent-lambda)."""
     metric_names = ("recon_loss",)
 
     def __init__(self, cfg: Config, latent_dim: int):
         super().__init__()
-        self.c1, self.latent_lambda = cfg.recon_coef, cfg.ae_latent_lambda
-        self.recon_decoder = Decoder(latent_dim, 3 * cfg.frame_stack)
+        self.c1, self.latent_lambda = 2 * cfg.recon_coef, cfg.ae_latent_lambda
+        self.recon_decoder = Decoder(latent_dim, 3 * cfg.frame_stack, in_channels=32)
 
     def forward(self, encoder, latent, obs, obs_aug, mask_aug):
-        recon_loss = summed_mse(self.recon_decoder(latent), obs_aug / 255.0 - 0.5)
+        recon_loss = reconstruction_loss(self.recon_decoder(latent), obs_aug)
         penalty = 0.5 * latent.pow(2).sum(1).mean()
         loss = self.c1 * recon_loss + self.latent_lambda * penalty
         return loss, {"recon_loss": recon_loss.item()}
@@ -395,7 +413,7 @@ class MAEAux(AuxLoss):
         hidden = patch_mask(obs_aug.shape[0], obs_aug.shape[-1], self.patch, self.ratio, obs_aug.device)
         masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
         pred = self.recon_decoder(encoder(masked))
-        recon_loss = summed_mse(pred, obs_aug / 255.0 - 0.5, weight=hidden)
+        recon_loss = reconstruction_loss(pred, obs_aug, weight=hidden)
         return self.c1 * recon_loss, {"recon_loss": recon_loss.item()}
 
 
@@ -415,7 +433,7 @@ class CURLAux(AuxLoss):
         self.key_head = copy.deepcopy(self.query_head).requires_grad_(False)
 
     def logits(self, q, k):
-        logits = q @ self.W @ k.T
+        logits = q.float() @ self.W @ k.float().T
         return logits - logits.max(dim=1, keepdim=True).values  # stability, as CURL
 
     def forward(self, encoder, latent, obs, obs_aug, mask_aug):
@@ -458,8 +476,10 @@ METHODS = {
 # ================================================================================================
 # 5. Agent
 # ================================================================================================
-def linear_std(cfg: Config, frame: int) -> float:
-    mix = min(max(frame / cfg.std_frames, 0.0), 1.0)
+def linear_std(cfg: Config, step: int) -> float:
+    """DrQ-v2's `linear(std_start, std_end, std_steps)`, evaluated at the global AGENT step (not the
+    frame): at action repeat 2 the std reaches std_end after 500k steps = 1M frames."""
+    mix = min(max(step / cfg.std_steps, 0.0), 1.0)
     return (1.0 - mix) * cfg.std_start + mix * cfg.std_end
 
 
@@ -485,8 +505,23 @@ class Agent:
         if self.aux is not None:
             model_params += [p for p in self.aux.parameters() if p.requires_grad]
         self.model_opt = torch.optim.Adam(model_params, lr=cfg.lr)
+        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs. They use the NHWC
+        # ("channels_last") layout, which oneDNN's and cuDNN's fastest kernels expect, and under
+        # --precision bf16 only they run in bf16: a TD target rounded to bf16's 8-bit mantissa would
+        # be off by up to 0.5 at Q = 100, so actor, critic and every loss stay in fp32.
+        for net in (self.encoder, self.aux):
+            if net is not None:
+                net.to(memory_format=torch.channels_last)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
         self.metric_names = ("critic_loss", "actor_loss", "q") + (self.aux.metric_names if self.aux else ())
+
+    def conv_precision(self):
+        """bf16 autocast for the convolutional networks under --precision bf16; a no-op for fp32."""
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cfg.precision == "bf16")
+
+    def encode(self, obs):
+        with self.conv_precision():
+            return self.encoder(obs).float()
 
     # --- inputs ---
     def encoder_input(self, pixels: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -501,12 +536,11 @@ class Agent:
         return torch.cat([rgb, m], dim=2).view(n, -1, h, w)
 
     @torch.no_grad()
-    def act(self, pixels: np.ndarray, mask: np.ndarray | None, frame: int, eval_mode: bool):
-        step = frame // max(1, self.cfg.action_repeat)
+    def act(self, pixels: np.ndarray, mask: np.ndarray | None, step: int, eval_mode: bool):
         obs = torch.as_tensor(pixels, device=self.device).float().unsqueeze(0)
         m = None if mask is None else torch.as_tensor(mask, device=self.device).float().unsqueeze(0)
-        latent = self.encoder(self.encoder_input(obs, m))
-        dist = self.actor(latent, linear_std(self.cfg, frame))
+        latent = self.encode(self.encoder_input(obs, m))
+        dist = self.actor(latent, linear_std(self.cfg, step))
         if eval_mode:
             action = dist.mean
         else:
@@ -516,14 +550,14 @@ class Agent:
         return action.squeeze(0).cpu().numpy().astype(np.float32)
 
     # --- updates ---
-    def joint_loss(self, obs, mask, action, reward, discount, next_obs, frame):
+    def joint_loss(self, obs, mask, action, reward, discount, next_obs, step):
         """Eq. 6: the critic's TD loss plus the auxiliary loss (c1 * recon + c2 * mask for SEAR).
         Returns the loss, the latent of the augmented observation, and the terms for the logs."""
         obs_aug, mask_aug = shift_together(obs, mask)
-        latent = self.encoder(obs_aug)
+        latent = self.encode(obs_aug)
         with torch.no_grad():
-            next_latent = self.encoder(random_shift(next_obs))
-            dist = self.actor(next_latent, linear_std(self.cfg, frame))
+            next_latent = self.encode(random_shift(next_obs))
+            dist = self.actor(next_latent, linear_std(self.cfg, step))
             next_action = dist.sample(clip=self.cfg.std_clip)
             target_q = torch.min(*self.critic_target(next_latent, next_action))
             target_q = reward + discount * target_q
@@ -531,14 +565,15 @@ class Agent:
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         loss, metrics = critic_loss, {}
         if self.aux is not None:
-            aux_loss, metrics = self.aux(self.encoder, latent, obs, obs_aug, mask_aug)
+            with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
+                aux_loss, metrics = self.aux(self.encoder, latent, obs, obs_aug, mask_aug)
             loss = loss + aux_loss
         metrics.update(critic_loss=critic_loss.item(), q=q1.mean().item())
         return loss, latent, metrics
 
-    def update_critic(self, obs, mask, action, reward, discount, next_obs, frame):
+    def update_critic(self, obs, mask, action, reward, discount, next_obs, step):
         """One joint step on encoder, critic and decoders (Alg. 1)."""
-        loss, latent, metrics = self.joint_loss(obs, mask, action, reward, discount, next_obs, frame)
+        loss, latent, metrics = self.joint_loss(obs, mask, action, reward, discount, next_obs, step)
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.model_opt.step()
@@ -546,9 +581,9 @@ class Agent:
             self.aux.after_update(self.encoder)
         return latent.detach(), metrics
 
-    def update_actor(self, latent, frame):
+    def update_actor(self, latent, step):
         """DDPG actor loss. `latent` is detached: the actor's loss never reaches the encoder."""
-        dist = self.actor(latent, linear_std(self.cfg, frame))
+        dist = self.actor(latent, linear_std(self.cfg, step))
         action = dist.sample(clip=self.cfg.std_clip)
         actor_loss = -torch.min(*self.critic(latent, action)).mean()
         self.actor_opt.zero_grad(set_to_none=True)
@@ -556,14 +591,14 @@ class Agent:
         self.actor_opt.step()
         return {"actor_loss": actor_loss.item()}
 
-    def update(self, batch, frame):
+    def update(self, batch, step):
         obs, mask, action, reward, discount, next_obs, next_mask = (
             torch.as_tensor(x, device=self.device) for x in batch)
         obs, mask, next_mask = obs.float(), mask.float(), next_mask.float()
         obs = self.encoder_input(obs, mask)
         next_obs = self.encoder_input(next_obs.float(), next_mask)
-        latent, metrics = self.update_critic(obs, mask, action, reward, discount, next_obs, frame)
-        metrics.update(self.update_actor(latent, frame))
+        latent, metrics = self.update_critic(obs, mask, action, reward, discount, next_obs, step)
+        metrics.update(self.update_actor(latent, step))
         with torch.no_grad():  # Polyak averaging of the target critic
             for p, p_t in zip(self.critic.parameters(), self.critic_target.parameters()):
                 p_t.lerp_(p, self.cfg.critic_tau)
@@ -870,7 +905,7 @@ def evaluate(agent, env, cfg: Config, frame):
         obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i))
         done, ret, success = False, 0.0, False
         while not done:
-            action = agent.act(obs["pixels"], obs["mask"], frame, eval_mode=True)
+            action = agent.act(obs["pixels"], obs["mask"], frame // cfg.action_repeat, eval_mode=True)
             obs, reward, terminated, truncated, info = env.step(action)
             ret += reward
             success = success or bool(info.get("success", False))
@@ -974,12 +1009,12 @@ def train(cfg: Config, resume_state: dict | None = None):
         if frame < cfg.seed_frames:
             action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
         else:
-            action = agent.act(obs["pixels"], obs["mask"], frame, eval_mode=False)
+            action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
         # Learning starts once the buffer holds the seed frames' worth of steps: after the random
         # phase of a new run, and again after a resume that could not bring its buffer back.
         if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
                 and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-            metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), frame)
+            metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), step)
             for k, v in metrics.items():
                 ep_metrics.setdefault(k, []).append(v)
 

@@ -36,10 +36,10 @@ def updates_per_second(method, batch_size, updates, action_dim=6, device="cpu"):
              rng.uniform(-1, 1, (n, action_dim)).astype(np.float32), rng.normal(size=(n, 1)).astype(np.float32),
              np.full((n, 1), 0.99 ** 3, np.float32), rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8),
              rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8))
-    agent.update(batch, frame=10_000)  # warm-up (allocator, kernels)
+    agent.update(batch, step=5_000)  # warm-up (allocator, kernels)
     start = time.perf_counter()
     for _ in range(updates):
-        agent.update(batch, frame=10_000)
+        agent.update(batch, step=5_000)
     return updates / (time.perf_counter() - start)
 
 

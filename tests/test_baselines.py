@@ -34,9 +34,9 @@ def numpy_batch(n=8, action_dim=2, seed=0):
 def test_every_method_builds_acts_and_updates(method):
     agent = sear.Agent(tiny_cfg(method), action_dim=2, device=CPU)
     batch = numpy_batch()
-    a = agent.act(batch[0][0], batch[1][0], frame=10**6, eval_mode=True)
+    a = agent.act(batch[0][0], batch[1][0], step=10**6, eval_mode=True)
     assert a.shape == (2,) and np.all(np.abs(a) <= 1)
-    metrics = agent.update(batch, frame=10**5)
+    metrics = agent.update(batch, step=10**5)
     assert set(agent.metric_names) == set(metrics)
     assert all(np.isfinite(v) for v in metrics.values())
 
@@ -49,7 +49,7 @@ def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms):
     batch = numpy_batch(n=4, seed=1)
     history = {t: [] for t in terms}
     for _ in range(40):
-        m = agent.update(batch, frame=10**5)
+        m = agent.update(batch, step=10**5)
         for t in terms:
             history[t].append(m[t])
     for t in terms:
@@ -89,16 +89,16 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels():
 
     cfg = tiny_cfg("mae")
     aux = sear.MAEAux(cfg, cfg.latent_dim)
-    obs = torch.randint(0, 256, (4, 9, 84, 84)).float()
+    obs = torch.full((4, 9, 84, 84), 255.0)  # target +0.5 everywhere
 
-    class OffByOne(torch.nn.Module):  # predicts target + 1 everywhere: error 1 on every pixel
+    class Grey(torch.nn.Module):  # predicts 0 everywhere: squared error 0.25 on every pixel
         def forward(self, z):
-            return obs / 255.0 - 0.5 + 1.0
+            return torch.zeros_like(obs)
 
-    aux.recon_decoder = OffByOne()
+    aux.recon_decoder = Grey()
     encoder = sear.PooledEncoder(9, cfg.latent_dim)
     _, m = aux(encoder, None, obs, obs, None)
-    assert m["recon_loss"] == pytest.approx(9 * 37 * 144)  # hidden pixels only, 9 channels
+    assert m["recon_loss"] == pytest.approx(0.25 * 9 * 37 * 144)  # hidden pixels only, 9 channels
 
 
 def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame():
@@ -112,7 +112,7 @@ def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame():
         assert torch.equal(x[:, 4 * f:4 * f + 3], pixels[:, 3 * f:3 * f + 3])
         assert torch.equal(x[:, 4 * f + 3], mask[:, f] * 255)
     with pytest.raises(ValueError, match="needs the robot mask"):
-        agent.act(pixels[0].numpy(), None, frame=0, eval_mode=True)
+        agent.act(pixels[0].numpy(), None, step=0, eval_mode=True)
 
 
 @pytest.mark.parametrize("method, split", [("sear", True), ("sear-nosplit", False)])

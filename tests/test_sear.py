@@ -77,7 +77,7 @@ def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask():
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
     obs, mask, action, reward, discount, next_obs = fake_batch()
     torch.manual_seed(0)
-    loss, latent, m = agent.joint_loss(obs, mask, action, reward, discount, next_obs, frame=0)
+    loss, latent, m = agent.joint_loss(obs, mask, action, reward, discount, next_obs, step=0)
     expected = m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     assert m["recon_loss"] > 0 and m["mask_loss"] > 0
@@ -94,9 +94,9 @@ def test_actor_loss_does_not_reach_encoder():
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
     obs, mask, action, reward, discount, next_obs = fake_batch()
-    latent, _ = agent.update_critic(obs, mask, action, reward, discount, next_obs, frame=0)
+    latent, _ = agent.update_critic(obs, mask, action, reward, discount, next_obs, step=0)
     agent.model_opt.zero_grad(set_to_none=True)
-    agent.update_actor(latent, frame=0)
+    agent.update_actor(latent, step=0)
     assert all(p.grad is None for p in agent.encoder.parameters())
     assert any(p.grad is not None for p in agent.actor.parameters())
 
@@ -105,7 +105,7 @@ def test_critic_and_aux_losses_reach_encoder():
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
     before = [p.detach().clone() for p in agent.encoder.parameters()]
-    agent.update_critic(*fake_batch(), frame=0)
+    agent.update_critic(*fake_batch(), step=0)
     assert any(not torch.equal(b, p) for b, p in zip(before, agent.encoder.parameters()))
 
 
@@ -235,9 +235,9 @@ def test_act_returns_bounded_action_and_rgbm_needs_mask():
     agent = sear.Agent(cfg, action_dim=3, device=torch.device("cpu"))
     pixels = np.random.randint(0, 256, (9, 84, 84), dtype=np.uint8)
     mask = np.zeros((3, 84, 84), dtype=np.uint8)
-    a = agent.act(pixels, mask, frame=10**6, eval_mode=False)
+    a = agent.act(pixels, mask, step=10**6, eval_mode=False)
     assert a.shape == (3,) and a.dtype == np.float32 and np.all(np.abs(a) <= 1)
     rgbm = sear.Agent(small_cfg(method="rgbm"), action_dim=3, device=torch.device("cpu"))
     assert rgbm.encoder.convs[0].in_channels == 12
     with pytest.raises(ValueError, match="mask"):
-        rgbm.act(pixels, None, frame=0, eval_mode=True)
+        rgbm.act(pixels, None, step=0, eval_mode=True)
