@@ -14,10 +14,11 @@ This module gives every suite used in the paper one Gymnasium-style interface:
   over the repeats; repeating stops when the episode ends).  At reset the first
   frame fills the whole stack.
 * Time-limit ends are ``truncated=True``; real terminations ``terminated=True``.
+  A solved Kitchen task also ends as a truncation (the authors bootstrap there).
 * ``info["success"]`` exists for the suites that define success (Meta-World,
   Kitchen, Adroit).
 * ``make_env(seed=s)`` plus ``reset(seed=s)`` reproduces an episode, including
-  random backgrounds and mask noise.
+  random backgrounds, Meta-World task variations and mask noise.
 
 The robot-mask rule (identical for all suites, no hard-coded geom-id ranges):
 a pixel is robot iff MuJoCo's segmentation render labels it with an object of
@@ -60,7 +61,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 from gymnasium import spaces
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
 __all__ = [
@@ -103,8 +104,12 @@ _ADROIT_TASKS = {"door": "AdroitHandDoor-v1", "hammer": "AdroitHandHammer-v1",
 # and colour distractions.
 _DIFFICULTY_NUM_VIDEOS = {"easy": 4, "medium": 8, "hard": None}
 _DIFFICULTY_SCALE = {"easy": 0.1, "medium": 0.2, "hard": 0.3}
-# Ground-plane alpha under distraction, as in the original suite.
-_GROUND_ALPHA = {"walker": 1.0, "ball_in_cup": 0.3}
+# Ground-plane alpha under distraction, as in the original suite
+# (google-research/google-research distracting_control/suite_utils.py,
+# get_background_kwargs): reacher 0 (the background replaces the ground),
+# walker and cheetah 1 (opaque), every other domain 0.3.
+_GROUND_ALPHA = {"reacher": 0.0, "walker": 1.0, "cheetah": 1.0}
+_GROUND_ALPHA_DEFAULT = 0.3
 
 # DAVIS 2017 train / val video names (the 60 / 30 videos the Distracting
 # Control Suite uses for its train / validation backgrounds).
@@ -301,6 +306,24 @@ def procedural_background(seed: int, size: int = 256) -> np.ndarray:
     return (field * 255).astype(np.uint8)
 
 
+def _check_image(path: Path) -> None:
+    """Raise EnvError unless ``path`` opens as an image.
+
+    Header only: PIL's ``open`` identifies the format and reads the size
+    without decoding pixels.  Catches non-images and unknown formats, not a
+    file cut short after its header (``verify()`` would catch some of those
+    but reads whole PNGs).  About 0.03-0.05 s per 1000 files.
+    """
+    try:
+        Image.open(path).close()
+    except UnidentifiedImageError:
+        raise EnvError(f"background file {str(path)!r} is not an image (or not in a format "
+                       f"PIL reads)") from None
+    except Exception as e:   # PIL also raises OSError, SyntaxError, ValueError, ...
+        reason = " ".join(str(e).split()) or type(e).__name__
+        raise EnvError(f"background file {str(path)!r} is not a readable image: {reason}") from None
+
+
 class Backgrounds:
     """Background images for one split, grouped like videos.
 
@@ -312,7 +335,8 @@ class Backgrounds:
     every 5th group (index 4, 9, ...) is held out for ``split="eval"``; if that
     leaves either split empty, both use all groups.  The difficulty limits the
     number of groups as in the original suite (easy 4, medium 8, hard all; for
-    procedural images hard = 60 train / 30 eval, the DAVIS counts).
+    procedural images hard = 60 train / 30 eval, the DAVIS counts).  Every
+    file of the split is checked to be an image when the set is built.
     """
 
     def __init__(self, directory: str | None, split: str, difficulty: str):
@@ -357,6 +381,9 @@ class Backgrounds:
                 groups = train if split == "train" else held_out
             self.source = f"{directory} ({len(groups)} groups)"
         self.groups = groups[:limit] if limit else groups
+        # Fail now, not hours into a run when a broken file is first sampled.
+        for path in (p for g in self.groups for p in g):
+            _check_image(path)
 
     def sample(self, rng: np.random.Generator, side: int) -> np.ndarray:
         """A random image (random group, then random frame), uint8 (side, side, 3)."""
@@ -387,8 +414,8 @@ class _Distractions:
     * background: the skybox texture is turned into a single square face
       (``tex_height = tex_width``: MuJoCo then repeats that face on all six
       cube sides) and a random image is written into it every episode; the
-      ground plane gets the original suite's alpha so the background shows
-      through it for ball_in_cup.
+      ground plane gets the original suite's alpha (``_GROUND_ALPHA``), so
+      the background shows through it except for walker and cheetah.
     * camera (optional, ``camera_distraction=s``): static per-episode random
       offset of the camera position (up to s x its distance) and rotation
       (up to s x 30 degrees) -- a simplified, non-drifting version of the
@@ -417,7 +444,7 @@ class _Distractions:
         self.nchannel = int(model.tex_nchannel[self.sky])
         grid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_MATERIAL, "grid")
         if grid >= 0:
-            model.mat_rgba[grid, 3] = _GROUND_ALPHA.get(domain, 1.0)
+            model.mat_rgba[grid, 3] = _GROUND_ALPHA.get(domain, _GROUND_ALPHA_DEFAULT)
         # Originals, restored before each episode's perturbation.
         # Tracking cameras (walker's trackcom) are placed from cam_pos0 /
         # cam_mat0, fixed ones from cam_pos / cam_quat: perturb both.
@@ -566,6 +593,11 @@ class _GymBackend:
         if self.suite == "kitchen":
             # Sparse: 1 per completed task; success = every task completed.
             success = len(info["episode_task_completions"]) == len(self.env.unwrapped.goal)
+            # FrankaKitchen terminates exactly when every task is completed
+            # (its robot never terminates).  The authors' kitchen wrapper ends
+            # that episode as dm_env.truncation (discount 1): the solved state
+            # is not absorbing, the agent bootstraps from it.  So do we.
+            truncated, terminated = truncated or terminated, False
         else:
             success = bool(info["success"])   # Adroit's goal_achieved
         return float(reward), bool(terminated), bool(truncated), {"success": success}
@@ -575,11 +607,14 @@ class _GymBackend:
 
 
 class _MetaWorldBackend:
-    """Meta-World v3 MT1 task with one fixed task variation per instance.
+    """Meta-World v3 MT1 task: a new task variation at every reset.
 
-    The goal-observable class freezes the random goal/object placement that it
-    drew from the construction seed, so the env seed picks the variation once
-    (MT1 would re-sample on every reset).  Episodes: 500 env steps.
+    As in the authors' code, the MT1 benchmark is built once from a
+    *variation seed* and every reset samples one of its 50 train variations
+    (object and goal placements) and ``set_task``s it.  Giving the train and
+    the eval env the same variation seed (``make_env(variation_seed=)``) makes
+    evaluation draw from the same 50 placements as training; which variation
+    an episode gets follows from the reset seed.  Episodes: 500 env steps.
     """
 
     flip = True        # v3's 'corner' camera renders upside down
@@ -587,19 +622,26 @@ class _MetaWorldBackend:
     opening = True
     has_success = True
 
-    def __init__(self, task: str, seed: int):
-        from metaworld.env_dict import ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
-        cls = ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE[f"{task}-v3-goal-observable"]
+    def __init__(self, task: str, variation_seed: int):
+        import metaworld
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            self.env = cls(seed=seed)
+            # MT1 draws its variations from np.random seeded with the variation
+            # seed (and restores the global state afterwards).
+            benchmark = metaworld.MT1(f"{task}-v3", seed=variation_seed)
+            self.env = benchmark.train_classes[f"{task}-v3"]()
+        self.variations = benchmark.train_tasks   # 50 metaworld.Task
+        self.variation = 0
+        self.env.set_task(self.variations[0])   # the env refuses to reset before a set_task
         self.model, self.data = self.env.model, self.env.data
         self.camera = "corner"
         self.robot_root = "base"
         self.action_dim = int(self.env.action_space.shape[0])
 
     def reset(self, seed: int) -> None:
-        self.env.seed(seed)
+        # A frozen task leaves nothing else random in a Meta-World reset.
+        self.variation = int(np.random.default_rng(seed).integers(len(self.variations)))
+        self.env.set_task(self.variations[self.variation])
         self.env.reset()
 
     def step(self, action):
@@ -794,7 +836,8 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
              backgrounds: str | None = None, difficulty: str = "hard",
              render_quality: str = "paper", split: str = "train",
              mask_downsample: str = "majority", camera_distraction: float = 0.0,
-             color_distraction: float = 0.0, render_mask: bool = True) -> SEAREnv:
+             color_distraction: float = 0.0, render_mask: bool = True,
+             variation_seed: int | None = None) -> SEAREnv:
     """Build a SEAR pixel env.  See the module docstring for the contract.
 
     ``backgrounds``/``difficulty``/``split``/``camera_distraction``/
@@ -805,6 +848,9 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     ``mask_downsample``: "majority" (default) or "stride" (the authors').
     ``render_mask=False`` skips the segmentation render (obs["mask"] is then
     all zeros), for mask-free baselines.
+    ``variation_seed`` (Meta-World only; defaults to ``seed``) seeds the MT1
+    benchmark whose 50 task variations the resets sample from: give the train
+    and the eval env the same value so both see the same 50 placements.
     """
     suite, args = _parse_name(name)
     if difficulty not in _DIFFICULTY_NUM_VIDEOS:
@@ -835,7 +881,8 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     if suite in ("dmc", "distracting"):
         backend = _DMCBackend(*args, seed=seed)
     elif suite == "metaworld":
-        backend = _MetaWorldBackend(*args, seed=seed)
+        backend = _MetaWorldBackend(*args, variation_seed=seed if variation_seed is None
+                                    else variation_seed)
     else:
         backend = _GymBackend(suite, *args, seed=seed)
     return SEAREnv(backend, name=name, seed=seed, frame_stack=frame_stack,

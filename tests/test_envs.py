@@ -5,6 +5,7 @@ is constructed once per module and shared between tests (see ``get_env``).
 Run: MUJOCO_GL=egl pytest -q tests/test_envs.py
 """
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -144,18 +145,57 @@ def test_reset_seed_reproducible(get_env, name):
         assert np.array_equal(a[k], b[k])
 
 
-def test_metaworld_variation_fixed_per_instance_chosen_by_seed(get_env):
-    env = get_env("metaworld-door-open")   # seed 0
-    same = make_env("metaworld-door-open", seed=0, render_quality="fast")
-    other = make_env("metaworld-door-open", seed=1, render_quality="fast")
-    a = env.reset(seed=3)[0]["pixels"]
-    b = env.reset()[0]["pixels"]           # next episode: same variation
-    c = same.reset(seed=3)[0]["pixels"]
-    d = other.reset(seed=3)[0]["pixels"]
-    goal0, goal1 = env.backend.env._target_pos.copy(), other.backend.env._target_pos.copy()
-    same.close(), other.close()
-    assert np.array_equal(a, b) and np.array_equal(a, c)
-    assert not np.array_equal(a, d) and not np.allclose(goal0, goal1)
+def rand_vecs(tasks):
+    """The placements (rand_vec) of a list of metaworld.Task."""
+    return np.array([pickle.loads(t.data)["rand_vec"] for t in tasks])
+
+
+def is_one_of(vec, vecs):
+    return any(np.array_equal(vec, v) for v in vecs)
+
+
+def test_metaworld_variation_sampled_per_reset_seed(get_env):
+    import metaworld
+    env = get_env("metaworld-door-open")   # seed 0, so variation seed 0
+    mt1 = rand_vecs(metaworld.MT1("door-open-v3", seed=0).train_tasks)
+    assert len(mt1) == 50
+    seen, pixels = {}, {}
+    for s in range(6):
+        obs, _ = env.reset(seed=s)
+        rand_vec = env.backend.env._last_rand_vec
+        # The placement is one of the 50 MT1 train tasks, and the door really
+        # stands there (set_task + reset moved the object, not only the goal).
+        assert is_one_of(rand_vec, mt1)
+        assert np.allclose(env.data.body("door").xpos, rand_vec[:3])
+        seen[s] = np.concatenate([env.data.body("door").xpos, env.backend.env._target_pos])
+        pixels[s] = obs["pixels"]
+    assert len({tuple(np.round(p, 6)) for p in seen.values()}) >= 4, seen
+    s, t = next((s, t) for s in seen for t in seen if not np.allclose(seen[s], seen[t]))
+    assert not np.array_equal(pixels[s], pixels[t])
+    # The same reset seed gives the same placement and image.
+    obs, _ = env.reset(seed=3)
+    assert np.array_equal(env.data.body("door").xpos, seen[3][:3])
+    assert np.array_equal(obs["pixels"], pixels[3])
+
+
+def test_metaworld_train_and_eval_share_variations(get_env):
+    train = get_env("metaworld-door-open")   # seed 0
+    evalenv = make_env("metaworld-door-open", seed=100_000, split="eval", variation_seed=0,
+                       frame_stack=1, render_quality="fast")
+    default = make_env("metaworld-door-open", seed=100_000, frame_stack=1, render_quality="fast")
+    try:
+        # The same 50 placements whatever the construction seed...
+        shared = rand_vecs(train.backend.variations)
+        assert np.array_equal(rand_vecs(evalenv.backend.variations), shared)
+        # ...and every eval reset draws one of them.
+        for s in range(5):
+            evalenv.reset(seed=s)
+            assert is_one_of(evalenv.backend.env._last_rand_vec, shared)
+        # Without variation_seed, the variation seed is the env seed: other placements.
+        default.reset(seed=0)
+        assert not any(np.allclose(default.backend.env._last_rand_vec, v) for v in shared)
+    finally:
+        evalenv.close(), default.close()
 
 
 def test_time_limit_is_truncation():
@@ -195,6 +235,26 @@ def test_kitchen_time_limit_is_280_steps(get_env):
     limit._elapsed_steps = 279
     _, _, terminated, truncated, _ = env.step(np.zeros(env.action_space.shape, np.float32))
     assert truncated and not terminated
+
+
+def test_kitchen_solved_task_is_truncation(get_env):
+    env = get_env("kitchen-light")
+    zero = np.zeros(env.action_space.shape, np.float32)
+
+    def switch_light_on():
+        # FrankaKitchen's light-switch goal: qpos[17:19] near (-0.69, -0.05).
+        env.reset(seed=0)
+        env.data.qpos[17:19] = (-0.69, -0.05)
+        env.data.qvel[:] = 0
+        mujoco.mj_forward(env.model, env.data)
+
+    switch_light_on()
+    _, _, raw_terminated, raw_truncated, _ = env.backend.env.step(zero)
+    assert raw_terminated and not raw_truncated   # gymnasium-robotics: a termination
+    switch_light_on()
+    _, reward, terminated, truncated, info = env.step(zero)
+    assert reward == 1.0 and info["success"]
+    assert truncated and not terminated             # ours: the agent bootstraps
 
 
 def test_action_repeat_sums_rewards():
@@ -425,6 +485,34 @@ def test_difficulty_controls_number_of_backgrounds(tmp_path):
     assert len(envs.Backgrounds(None, "train", "medium").groups) == 8
 
 
+@pytest.mark.parametrize("name, alpha", [
+    ("reacher-easy-distracting", 0.0), ("walker-walk-distracting", 1.0),
+    ("cheetah-run-distracting", 1.0), ("cup-catch-distracting", 0.3),
+    ("finger-spin-distracting", 0.3), ("hopper-hop-distracting", 0.3),
+])
+def test_ground_alpha_as_original_suite(name, alpha):
+    env = make_env(name, seed=0, frame_stack=1, size=32, render_quality="fast", render_mask=False)
+    grid_alpha = env.model.mat_rgba[env.model.material("grid").id, 3]
+    env.close()
+    assert grid_alpha == pytest.approx(alpha)
+
+
+def test_non_image_background_fails_at_build(tmp_path):
+    write_image(tmp_path / "flat" / "real.png", (230, 10, 10))
+    (tmp_path / "flat" / "fake.jpg").write_text("not an image")
+    with pytest.raises(EnvError, match="fake.jpg") as err:
+        make_env("walker-walk-distracting", backgrounds=str(tmp_path / "flat"))
+    assert "\n" not in str(err.value) and "real.png" not in str(err.value)
+    # Only the split's files are checked: a bad file in the held-out 5th
+    # group breaks the eval split, not the train split.
+    for i in range(5):
+        write_image(tmp_path / "videos" / f"v{i}" / "00000.png", (i * 40, 0, 0))
+    (tmp_path / "videos" / "v4" / "00001.jpg").write_text("not an image")
+    assert len(envs.Backgrounds(str(tmp_path / "videos"), "train", "hard").groups) == 4
+    with pytest.raises(EnvError, match="00001.jpg"):
+        envs.Backgrounds(str(tmp_path / "videos"), "eval", "hard")
+
+
 def test_procedural_backgrounds_deterministic_and_varied():
     a, b = envs.procedural_background(3), envs.procedural_background(3)
     assert np.array_equal(a, b) and a.dtype == np.uint8 and a.shape == (256, 256, 3)
@@ -501,9 +589,12 @@ def run_cli(*args):
 @pytest.mark.parametrize("args", [
     ["--gallery", "out.png", "--envs", "foo"],
     ["--gallery", "out.png", "--backgrounds", "/nonexistent/dir"],
+    ["--gallery", "out.png", "--backgrounds", "bgs"],   # holds a fake.jpg
 ])
 def test_cli_bad_input_one_line_no_traceback(tmp_path, args):
-    args = [str(tmp_path / a) if a == "out.png" else a for a in args]
+    write_image(tmp_path / "bgs" / "real.png", (230, 10, 10))
+    (tmp_path / "bgs" / "fake.jpg").write_text("not an image")
+    args = [str(tmp_path / a) if a in ("out.png", "bgs") else a for a in args]
     proc = run_cli(*args)
     assert proc.returncode != 0
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
