@@ -66,6 +66,8 @@ class Config:
                           "machine: give each cores/runs")
     run_root: str = arg("runs", "folder that holds run directories")
     resume: str = arg("", "run directory to continue from its last snapshot")
+    recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code "
+                               "where the two differ: RECIPES below, README's table); explicit flags win")
     save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
@@ -112,6 +114,46 @@ class Config:
     log_every: float = arg(10.0, "seconds between progress lines")
 
 
+def _walker(cfg):
+    return cfg.env.startswith("walker-")
+
+
+def _manipulation(cfg):
+    return cfg.env.split("-")[0] in ("metaworld", "kitchen", "adroit")
+
+
+def _authors_discount(cfg):
+    import envs  # the suite's default action repeat; imported late so --help needs no MuJoCo
+    return round(0.99 ** (1 + (cfg.action_repeat or envs.default_action_repeat(cfg.env))), 6)
+
+
+# Every value where the paper's hyper-parameter table and the authors' released code
+# (github.com/sear-rl/sear-rl) differ: (field, applies to, authors' value, source). The Config defaults
+# are the paper's values; --recipe authors replaces these unless the flag is given explicitly.
+RECIPES = {"authors": (
+    ("recon_coef", lambda cfg: True, 1.0, "sear/cfgs/agent/sear.yaml: reconstruction_loss_coeff"),
+    ("mask_coef", lambda cfg: True, 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
+    ("nstep", _walker, 1, "sear/cfgs/task/distracting_walker_walk.yaml: nstep (DrQ-v2's walker config)"),
+    ("batch_size", _walker, 512, "sear/cfgs/task/distracting_walker_walk.yaml: batch_size"),
+    # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the
+    # replay multiplies by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
+    ("discount", _manipulation, _authors_discount,
+     "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
+    ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
+)}
+
+
+def apply_recipe(cfg, explicit: set) -> list[str]:
+    """Set the recipe's values on `cfg`, except fields the user gave explicitly. Returns what changed."""
+    changed = []
+    for name, applies, value, source in RECIPES.get(cfg.recipe, ()):
+        if name in explicit or not applies(cfg):
+            continue
+        setattr(cfg, name, value(cfg) if callable(value) else value)
+        changed.append(f"{name}={getattr(cfg, name)} ({source})")
+    return changed
+
+
 class ConfigError(ValueError):
     """Bad user input: reported as one line on stderr."""
 
@@ -131,6 +173,8 @@ def validate(cfg: Config) -> None:
                  "color_distraction"]:
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ConfigError(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(cfg, name)}")
+    if cfg.recipe not in ("paper", *RECIPES):
+        raise ConfigError(f"--recipe must be paper or {' or '.join(RECIPES)}, got '{cfg.recipe}'")
     if cfg.method not in METHODS:
         raise ConfigError(f"unknown method '{cfg.method}'; valid: {', '.join(METHODS)}")
     if cfg.latent_dim % 2:
@@ -1091,7 +1135,7 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-RESUME_MAY_CHANGE = {"frames", "device", "save_buffer", "log_every", "resume"}
+RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume"}
 
 
 def parse_args(argv=None) -> tuple[Config, dict | None]:
@@ -1120,11 +1164,17 @@ def parse_args(argv=None) -> tuple[Config, dict | None]:
             if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
                 raise ConfigError(f"--{k.replace('_', '-')} cannot change on --resume "
                                   f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
+        if "std_frames" in saved and "std_steps" not in saved:  # snapshots from before std counted steps
+            saved["std_steps"] = max(1, saved["std_frames"] // max(1, saved.get("action_repeat") or 1))
         known = {f.name for f in dataclasses.fields(Config)}
         cfg = Config(**{**{k: v for k, v in saved.items() if k in known}, **given})
+        validate(cfg)  # a resumed config was resolved when the run started: no recipe again
     else:
         cfg = Config(**given)
-    validate(cfg)
+        validate(cfg)
+        changed = apply_recipe(cfg, set(given))
+        if changed:
+            print(f"recipe {cfg.recipe}: " + "; ".join(changed))
     return cfg, state
 
 

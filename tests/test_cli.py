@@ -150,3 +150,23 @@ def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
     a = torch.load(straight_dir / "snapshot.pt", weights_only=False)["agent"]["encoder"]
     b = torch.load(split_dir / "snapshot.pt", weights_only=False)["agent"]["encoder"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("action_repeat", [1, 2])
+def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action_repeat):
+    """The std schedule, exploration phase and updates see the agent step (frame / action repeat)."""
+    import sear
+    seen = {"act": [], "update": []}
+    act, update = sear.Agent.act, sear.Agent.update
+    monkeypatch.setattr(sear.Agent, "act", lambda self, p, m, step, eval_mode: (
+        None if eval_mode else seen["act"].append(step), act(self, p, m, step, eval_mode))[1])
+    monkeypatch.setattr(sear.Agent, "update", lambda self, batch, step: (
+        seen["update"].append(step), update(self, batch, step))[1])
+    cfg, _ = sear.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat", str(action_repeat),
+                              "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY])
+    sear.train(cfg)
+    first = cfg.seed_frames // action_repeat  # the first step after the random seed phase
+    last = cfg.frames // action_repeat - 1
+    assert seen["act"] == list(range(first, last + 1))
+    assert seen["update"] and seen["update"][0] >= first and seen["update"][-1] <= last
+    assert all(s % cfg.update_every == 0 for s in seen["update"])

@@ -241,3 +241,35 @@ def test_act_returns_bounded_action_and_rgbm_needs_mask():
     assert rgbm.encoder.convs[0].in_channels == 12
     with pytest.raises(ValueError, match="mask"):
         rgbm.act(pixels, None, step=0, eval_mode=True)
+
+
+# ---------------------------------------------------------------- protocol
+@pytest.mark.parametrize("action_repeat", [1, 2])
+def test_exploration_std_counts_agent_steps_not_frames(action_repeat):
+    """DrQ-v2's linear(1.0, 0.1, 500000) is evaluated at the agent step: 0.55 after 250k steps
+    whatever the action repeat (250k frames at repeat 1, 500k frames at repeat 2)."""
+    cfg = sear.Config(action_repeat=action_repeat)
+    assert cfg.std_steps == 500_000
+    for step, std in [(0, 1.0), (100_000, 0.82), (250_000, 0.55), (500_000, 0.1), (10**7, 0.1)]:
+        assert sear.linear_std(cfg, step) == pytest.approx(std)
+
+
+def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
+    paper, _ = sear.parse_args(["--env", "walker-walk-distracting"])
+    assert paper == sear.Config(env="walker-walk-distracting")
+    assert (paper.recon_coef, paper.mask_coef, paper.nstep, paper.batch_size) == (0.01, 0.0025, 3, 256)
+    authors, _ = sear.parse_args(["--env", "walker-walk-distracting", "--recipe", "authors"])
+    assert (authors.recon_coef, authors.mask_coef, authors.nstep, authors.batch_size) == (1.0, 0.25, 1, 512)
+    assert authors.discount == 0.99 and authors.difficulty == "medium"
+    assert "recon_coef=1.0" in capsys.readouterr().out  # the run says what the recipe changed
+    other, _ = sear.parse_args(["--env", "cup-catch-distracting", "--recipe", "authors"])
+    assert (other.nstep, other.batch_size) == (3, 256)  # walker-only values stay off elsewhere
+    mw, _ = sear.parse_args(["--env", "metaworld-door-open", "--recipe", "authors"])
+    assert mw.discount == pytest.approx(0.99 ** 3) and mw.mask_downsample == "stride"
+    kitchen, _ = sear.parse_args(["--env", "kitchen-kettle", "--recipe", "authors"])
+    assert kitchen.discount == pytest.approx(0.99 ** 2)
+    explicit, _ = sear.parse_args(["--env", "walker-walk", "--recipe", "authors", "--nstep", "3",
+                                   "--recon-coef", "0.5"])
+    assert (explicit.nstep, explicit.recon_coef, explicit.batch_size) == (3, 0.5, 512)  # flags win
+    with pytest.raises(sear.ConfigError, match="--recipe"):
+        sear.parse_args(["--recipe", "mine"])
