@@ -196,7 +196,7 @@ def test_a_failing_job_is_reported_with_its_error_and_the_others_still_run(tmp_p
 
 RECORDS_ITS_ARGS = """import json, os, sys
 with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "calls.jsonl"), "a") as f:
-    f.write(json.dumps(sys.argv[1:]) + "\\n")
+    f.write(json.dumps([os.environ["OMP_NUM_THREADS"], *sys.argv[1:]]) + "\\n")
 """
 
 
@@ -205,10 +205,11 @@ def make_job(tmp_path, name="walker-walk__drq__1__abcd1234"):
     script.write_text(RECORDS_ITS_ARGS)
     d = tmp_path / "sweeps" / "s" / name
     d.mkdir(parents=True)
-    return sweep.SearJob(str(d), ["--env", "walker-walk"], ["--device", "auto"], 1, script=str(script)), d
+    return sweep.SearJob(str(d), ["--env", "walker-walk"], ["--device", "auto"], 3, script=str(script)), d
 
 
 def calls(tmp_path):
+    """The stand-in sear.py's arguments, each call's after the torch thread count it was given."""
     path = tmp_path / "calls.jsonl"
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
@@ -225,9 +226,23 @@ def test_a_live_lock_is_respected_and_a_dead_one_taken_over(tmp_path):
     sweep.write_json(str(d / "lock"), {**me, "pid": gone.pid, "start": None})  # its holder died
     assert sweep.job_state(str(d))[0] == "not started"
     assert job() == "done"
-    assert calls(tmp_path) == [["--env", "walker-walk", "--run-root", str(d / "run")]]
+    assert calls(tmp_path) == [["3", "--env", "walker-walk", "--run-root", str(d / "run")]]
     assert not (d / "lock").exists() and (d / "DONE").exists()
     assert job() == "done" and len(calls(tmp_path)) == 1  # finished: never started again
+
+
+def test_the_sweep_never_starts_a_key_that_is_running(tmp_path, capsys):
+    out = tmp_path / "sweeps"
+    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "sear", "--seeds", "1", "--frames", "40"]
+    _, specs, _ = plan(argv)
+    busy = out / "custom" / specs[0].name
+    busy.mkdir(parents=True)
+    sweep.write_json(str(busy / "lock"), sweep.whoami())  # a live process runs this key
+    (out / "custom" / specs[1].name).mkdir()
+    (out / "custom" / specs[1].name / "DONE").write_text("")
+    assert sweep.main(argv) == 0
+    assert "2 jobs (1 envs x 2 methods x 1 seeds): 1 done, 1 running elsewhere, 0 to run" in capsys.readouterr().out
+    assert sorted(p.name for p in busy.iterdir()) == ["lock"]  # nothing submitted, nothing written
 
 
 def test_an_interrupted_run_resumes_from_its_snapshot_or_moves_aside_without_one(tmp_path):
@@ -236,14 +251,14 @@ def test_an_interrupted_run_resumes_from_its_snapshot_or_moves_aside_without_one
     run.mkdir(parents=True)
     (run / "snapshot.pt").write_bytes(b"stand-in")
     assert job() == "done"
-    assert calls(tmp_path)[-1] == ["--resume", str(run), "--device", "auto"]
+    assert calls(tmp_path)[-1] == ["3", "--resume", str(run), "--device", "auto"]
 
     job, d = make_job(tmp_path, "walker-walk__drq__1__00000002")
     run = d / "run" / "walker-walk__drq__1__20260101-000000"
     run.mkdir(parents=True)
     (run / "config.json").write_text('{"note": "the user\'s"}')
     assert job() == "done"
-    assert calls(tmp_path)[-1] == ["--env", "walker-walk", "--run-root", str(d / "run")]
+    assert calls(tmp_path)[-1] == ["3", "--env", "walker-walk", "--run-root", str(d / "run")]
     aside = tmp_path / "sweeps" / "s.aside" / d.name / run.name / "config.json"
     assert aside.read_text() == '{"note": "the user\'s"}' and not run.exists()
     assert "moved the snapshot-less run" in (d / "stdout.log").read_text()
