@@ -1,0 +1,839 @@
+"""Run the paper's grids (seeds x tasks x methods) with sear.py, on one machine or a SLURM cluster.
+
+Every (env, method, seed, flags) is one job with its own deterministic directory, so a sweep can be
+stopped and started again at any time: finished runs are skipped, interrupted ones resume from
+their last snapshot, and no key ever runs twice at once.
+
+Usage:
+  python sweep.py --grid kitchen                        # a named grid of the paper (see --help)
+  python sweep.py --envs walker-walk cup-catch --methods sear drq --seeds 1-5 -- --frames 100000
+  python sweep.py --grid kitchen --status               # queued / running / done / failed
+  python sweep.py --grid kitchen --report               # mean +- 95% CI over seeds, per task and overall
+  python sweep.py --grid kitchen --partition gpu        # on SLURM (detected through `srun`)
+
+Flags that sweep.py does not know go to sear.py (after `--` or anywhere on the line); sear.py's
+own parser checks them before anything is created, so a typo fails the whole sweep at once.
+
+Job directory: <out>/<sweep>/<env>__<method>__<seed>__<hash of the other sear.py flags>/
+  job.json      what the job is: the sear.py arguments of a fresh run and of a resume
+  run/          sear.py's --run-root: exactly one run directory
+  stdout.log    sear.py's stdout, one "=== attempt" header per start; stderr.log likewise
+  status.json   queued | running | done | failed | interrupted, the exit code, the last stderr line
+  lock          pid, host and job id of the process that runs the job (a dead holder is taken over)
+  DONE          written after sear.py exits 0: a re-run skips the job
+A snapshot-less run that failed is moved, untouched, to <out>/<sweep>.aside/ before a clean restart.
+
+Sections: 1. the paper's grids  2. from flags to jobs  3. job directories: lock, status, the run
+          4. the job  5. engines  6. status table  7. report  8. CLI
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import dataclasses
+import difflib
+import fcntl
+import hashlib
+import io
+import json
+import os
+import re
+import shlex
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+
+import submitit
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+SEAR_PY = os.path.join(HERE, "sear.py")
+
+
+# ================================================================================================
+# 1. The paper's grids
+# ================================================================================================
+@dataclass(frozen=True)
+class Variant:
+    """One line in a grid's plots: a sear.py --method plus the flags that make the variant."""
+    label: str
+    method: str
+    flags: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Grid:
+    envs: tuple[str, ...]
+    variants: tuple[Variant, ...]
+    flags: tuple[str, ...]     # budgets shared by every run of the grid
+    metric: str                # what the report plots: success (manipulation suites) or return
+    doc: str
+    env_flags: dict = field(default_factory=dict)  # per-task settings from the authors' task cfgs
+    seeds: tuple[int, ...] = (1, 2, 3, 4, 5)
+
+
+def plain(*methods):
+    return tuple(Variant(m, m) for m in methods)
+
+
+BASELINES = plain("sear", "drq", "ae", "mae", "curl")
+# The authors' task cfgs (sear/cfgs/task/{metaworld,kitchen,adroit,distracting}.yaml) all train for
+# num_train_frames 2.5M with the exploration std decaying over 500k frames (sear.py's default).
+PAPER_FRAMES = ("--frames", "2500000")
+# The authors' MT10_CUSTOMIZED (sear/environments/metaworld_custom_envs.py), in their order.
+METAWORLD10 = ("button-press-topdown-wall", "door-open", "door-unlock", "door-lock", "button-press-wall",
+               "assembly", "hammer", "handle-pull", "door-close", "coffee-button")
+# The ablations run on the authors' 3-task subset of those (their MT3_CUSTOMIZED).
+ABLATION_TASKS = ("button-press-topdown-wall", "door-open", "hammer")
+
+GRIDS = {
+    "metaworld10": Grid(
+        envs=tuple(f"metaworld-{t}" for t in METAWORLD10), variants=BASELINES, flags=PAPER_FRAMES,
+        metric="success", doc="10 Meta-World tasks (the authors' MT10-customized set)"),
+    "kitchen": Grid(
+        envs=("kitchen-kettle", "kitchen-light", "kitchen-slider"), variants=BASELINES,
+        flags=PAPER_FRAMES, metric="success", doc="Franka Kitchen kettle, light, slider"),
+    "adroit": Grid(
+        envs=("adroit-door", "adroit-hammer", "adroit-pen", "adroit-relocate"), variants=BASELINES,
+        flags=PAPER_FRAMES, metric="success", doc="the 4 Adroit hand tasks"),
+    "distracting": Grid(
+        envs=("walker-walk-distracting", "cup-catch-distracting"), variants=BASELINES,
+        # distracting.yaml: difficulty medium, background distraction only (sear.py's default is hard).
+        flags=(*PAPER_FRAMES, "--difficulty", "medium"), metric="return",
+        # distracting_walker_walk.yaml keeps DrQ-v2's walker settings: 1-step returns, batch 512.
+        env_flags={"walker-walk-distracting": ("--nstep", "1", "--batch-size", "512")},
+        doc="Distracting Control walker-walk and cup-catch (pass --backgrounds DAVIS/JPEGImages/480p)"),
+    "ablations": Grid(
+        envs=tuple(f"metaworld-{t}" for t in ABLATION_TASKS), flags=PAPER_FRAMES, metric="success",
+        variants=(Variant("sear", "sear"), Variant("drq", "drq"),
+                  Variant("sear-mask-noise", "sear", ("--mask-noise", "0.25")),
+                  Variant("sear-mask-approx", "sear", ("--mask-approx",)),
+                  Variant("rgbm", "rgbm"), Variant("sear-nosplit", "sear-nosplit"),
+                  # c1/c2 of Eq. 6: the authors' code's values, and each decoder switched off
+                  Variant("sear-c-authors", "sear", ("--recon-coef", "1.0", "--mask-coef", "0.25")),
+                  Variant("sear-no-recon", "sear", ("--recon-coef", "0")),
+                  Variant("sear-no-mask", "sear", ("--mask-coef", "0"))),
+        doc="noisy / approximate masks, rgbm, no split, c1/c2 on 3 Meta-World tasks"),
+}
+# Named so that asking for them gives a clear answer instead of "unknown grid".
+NOT_YET = {"transfer": "multi-task pre-training and transfer (the paper's MT10 study) need sear.py "
+                       "support that does not exist yet"}
+
+
+# ================================================================================================
+# 2. From flags to jobs
+# ================================================================================================
+class SweepError(ValueError):
+    """Bad user input: reported as one line on stderr, exit code 2, nothing created."""
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    sweep: str                      # folder under --out
+    env: str
+    variant: str                    # the method, or a grid's variant label
+    seed: int
+    key: str                        # short hash of the sear.py config's non-default values
+    frames: int
+    args: tuple[str, ...]           # sear.py arguments of a fresh run (sweep.py adds --run-root)
+    resume_args: tuple[str, ...]    # what may change on --resume (device, budget, logging)
+
+    @property
+    def name(self) -> str:
+        return f"{self.env}__{self.variant}__{self.seed}__{self.key}"
+
+
+SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+# sear.py flags that sweep.py sets itself, and what to use instead.
+RESERVED = {"--env": "--envs", "--method": "--methods", "--seed": "--seeds", "--run-root": "--out",
+            "--resume": "re-running the sweep, which resumes interrupted runs"}
+# Config fields that do not change the experiment, so they do not change the job's key.
+UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "log_every", "save_buffer"}
+
+
+def parse_seeds(tokens: list[str]) -> tuple[int, ...]:
+    """'1-5', '1,3,7', '1-3 9' -> seeds in the order given, without repeats."""
+    seeds = []
+    for tok in re.split(r"[,\s]+", " ".join(tokens).strip()):
+        m = re.fullmatch(r"(\d+)(?:-(\d+))?", tok)
+        if not m:
+            raise SweepError(f"--seeds: '{tok}' is neither a seed nor a range like 1-5")
+        lo, hi = int(m[1]), int(m[2] or m[1])
+        if hi < lo:
+            raise SweepError(f"--seeds: the range '{tok}' is empty")
+        seeds += [s for s in range(lo, hi + 1) if s not in seeds]
+    return tuple(seeds)
+
+
+def parse_names(tokens: list[str]) -> tuple[str, ...]:
+    names = []
+    for tok in re.split(r"[,\s]+", " ".join(tokens).strip()):
+        if tok and tok not in names:
+            names.append(tok)
+    return tuple(names)
+
+
+def sear_flag_names() -> set[str]:
+    """Every flag sear.py's parser has: one per Config field, plus --no-X for booleans."""
+    import sear
+    names = set()
+    for f in dataclasses.fields(sear.Config):
+        flag = "--" + f.name.replace("_", "-")
+        names.add(flag)
+        if f.type in ("bool", bool):
+            names.add("--no-" + flag[2:])
+    return names
+
+
+def check_passthrough(tokens: list[str]) -> None:
+    """Exact sear.py flag names only: argparse would take an abbreviation such as --see for --seed."""
+    known = sear_flag_names()
+    for tok in tokens:
+        if not tok.startswith("--"):
+            continue
+        name = tok.split("=", 1)[0]
+        if name in RESERVED:
+            raise SweepError(f"{name} is set by sweep.py; use {RESERVED[name]}")
+        if name not in known:
+            close = difflib.get_close_matches(name, sorted(known), n=1)
+            raise SweepError(f"sear.py has no flag {name}" + (f"; did you mean {close[0]}?" if close else ""))
+
+
+def sear_config(argv: list[str], what: str):
+    """sear.py's own parser and checks on argv (nothing is created), and the env name by envs.py."""
+    import envs
+    import sear
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):  # argparse prints its one-line error, then exits
+            cfg, _ = sear.parse_args(argv)
+        envs.default_action_repeat(cfg.env)    # unknown env names fail here, not hours later
+    except SystemExit:
+        raise SweepError(f"sear.py rejects {what}: {err.getvalue().strip().removeprefix('sear.py: error: ')}")
+    except (sear.ConfigError, envs.EnvError) as e:
+        raise SweepError(f"sear.py rejects {what}: {e}")
+    return cfg
+
+
+def config_key(cfg) -> str:
+    """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys alone."""
+    import sear
+    defaults = dataclasses.asdict(sear.Config())
+    diff = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in UNKEYED and v != defaults[k]}
+    return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
+
+
+def resume_flags(cfg) -> tuple[str, ...]:
+    """The config values a resume may change (sear.RESUME_MAY_CHANGE), as flags."""
+    import sear
+    flags = []
+    for name in sorted(sear.RESUME_MAY_CHANGE - {"resume"}):
+        flag, value = "--" + name.replace("_", "-"), getattr(cfg, name)
+        if isinstance(value, bool):
+            flags.append(flag if value else "--no-" + flag[2:])
+        else:
+            flags += [flag, str(value)]
+    return tuple(flags)
+
+
+def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]:
+    """(sweep name, jobs, grid) from the command line. Checks everything; creates nothing."""
+    grid = None
+    if args.grid:
+        if args.grid in NOT_YET:
+            raise SweepError(f"grid '{args.grid}' is not available yet: {NOT_YET[args.grid]}")
+        if args.grid not in GRIDS:
+            raise SweepError(f"unknown grid '{args.grid}'; choose from {', '.join(GRIDS)}")
+        grid = GRIDS[args.grid]
+    elif not (args.envs and args.methods):
+        raise SweepError("give --grid NAME, or --envs and --methods")
+    sweep = args.name or args.grid or "custom"
+    if not SAFE_NAME.fullmatch(sweep) or sweep.endswith(".aside"):
+        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_' or '-' (and not end in .aside)")
+
+    envs = parse_names(args.envs) if args.envs else None
+    wanted = parse_names(args.methods) if args.methods else None
+    seeds = parse_seeds(args.seeds) if args.seeds else (grid.seeds if grid else (1,))
+    if grid:  # --envs and --methods pick from the grid's lists
+        for given, have, what in ((envs, grid.envs, "env"), (wanted, [v.label for v in grid.variants], "method")):
+            extra = [x for x in (given or ()) if x not in have]
+            if extra:
+                raise SweepError(f"grid '{args.grid}' has no {what} {extra[0]}; it has {', '.join(have)}")
+        envs = envs or grid.envs
+        variants = [v for v in grid.variants if wanted is None or v.label in wanted]
+    else:
+        variants = [Variant(m, m) for m in wanted]
+    for v in variants:
+        if not SAFE_NAME.fullmatch(v.label):
+            raise SweepError(f"method '{v.label}' cannot name a directory")
+    check_passthrough(passthrough)
+
+    specs = []
+    for env in envs:
+        for v in variants:
+            # Grid budgets first, then the task's and the variant's settings; the user's flags win.
+            flags = [*(grid.flags if grid else ()), *(grid.env_flags.get(env, ()) if grid else ()),
+                     *v.flags, *passthrough]
+            base = ["--env", env, "--method", v.method]
+            cfg = sear_config([*base, "--seed", str(seeds[0]), *flags], f"{env} {v.label}")
+            key, resume = config_key(cfg), resume_flags(cfg)
+            for seed in seeds:
+                specs.append(JobSpec(sweep, env, v.label, seed, key, cfg.frames,
+                                     (*base, "--seed", str(seed), *flags), resume))
+    return sweep, specs, grid
+
+
+# ================================================================================================
+# 3. Job directories: lock, status, the run
+# ================================================================================================
+def read_json(path: str) -> dict | None:
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):  # absent, or cut short by a crash: as if absent
+        return None
+
+
+def write_json(path: str, data: dict) -> None:
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)  # readers see the old or the new file, never half of one
+
+
+def proc_stat(pid: int) -> list[str]:
+    """/proc/<pid>/stat after the command name (Linux; [] elsewhere): [0] is the state, [19] the
+    start time in clock ticks since boot, which tells a reused pid apart."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return []
+
+
+def process_start(pid: int) -> int | None:
+    fields = proc_stat(pid)
+    return int(fields[19]) if len(fields) > 19 else None
+
+
+def whoami() -> dict:
+    """This process as a lock holder: pid and host, plus the submitit job id inside a job."""
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "start": process_start(os.getpid()), "time": time.time()}
+    try:
+        env = submitit.JobEnvironment()
+        me.update(job=env.job_id, cluster=env.cluster)
+    except RuntimeError:  # not inside a submitit job (the sweep driver itself)
+        pass
+    return me
+
+
+def slurm_job_alive(job_id: str) -> bool | None:
+    if shutil.which("squeue") is None:
+        return None
+    r = subprocess.run(["squeue", "-h", "-j", job_id, "-o", "%T"], capture_output=True, text=True)
+    return bool(r.stdout.strip()) if r.returncode == 0 or "Invalid job id" in r.stderr else None
+
+
+def alive(owner: dict | None) -> bool | None:
+    """True / False, or None when this machine cannot tell (another host, no squeue)."""
+    if not owner:
+        return False
+    if owner.get("host") == socket.gethostname() and owner.get("pid"):
+        try:
+            os.kill(owner["pid"], 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # someone else's live process
+            return True
+        fields = proc_stat(owner["pid"])
+        if fields[:1] == ["Z"]:  # killed, not yet reaped by its parent
+            return False
+        start = int(fields[19]) if len(fields) > 19 else None
+        return start is None or owner.get("start") in (None, start)
+    if owner.get("cluster") == "slurm" and owner.get("job"):
+        return slurm_job_alive(owner["job"])
+    return None
+
+
+def describe(owner: dict) -> str:
+    where = f"pid {owner['pid']} on {owner['host']}" if owner.get("pid") else ""
+    job = f"{owner.get('cluster', '')} job {owner['job']}".strip() if owner.get("job") else ""
+    return ", ".join(x for x in (where, job) if x) or "unknown"
+
+
+@contextlib.contextmanager
+def guard(job_dir: str):
+    """Serialises lock take-overs: two processes that both see a stale lock cannot both win."""
+    with open(os.path.join(job_dir, ".guard"), "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def take_lock(job_dir: str, me: dict) -> dict | None:
+    """None if `me` now holds the job's lock, else the live holder. A holder that is dead, or
+    this very SLURM job before a requeue, is taken over."""
+    path = os.path.join(job_dir, "lock")
+    with guard(job_dir):
+        holder = read_json(path)
+        requeued = holder and me.get("job") and holder.get("job") == me["job"]
+        if holder and not requeued and alive(holder) is not False:
+            return holder
+        write_json(path, me)
+    return None
+
+
+def drop_lock(job_dir: str, me: dict) -> None:
+    path = os.path.join(job_dir, "lock")
+    with guard(job_dir):
+        holder = read_json(path)
+        if holder and holder.get("pid") == me["pid"] and holder.get("host") == me["host"]:
+            os.remove(path)
+
+
+def run_dirs(job_dir: str) -> list[str]:
+    root = os.path.join(job_dir, "run")
+    if not os.path.isdir(root):
+        return []
+    return sorted(os.path.join(root, d) for d in os.listdir(root) if os.path.isdir(os.path.join(root, d)))
+
+
+def last_line(path: str, offset: int = 0) -> str:
+    """The last non-empty line of a log from `offset` on: an error's last line is its message."""
+    try:
+        with open(path, errors="replace") as f:
+            f.seek(offset)
+            lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1][:300] if lines else ""
+
+
+def set_status(job_dir: str, state: str, **info) -> None:
+    old = read_json(os.path.join(job_dir, "status.json")) or {}
+    write_json(os.path.join(job_dir, "status.json"),
+               {"state": state, "time": time.strftime("%Y-%m-%d %H:%M:%S"),
+                "attempts": old.get("attempts", 0), **info})
+
+
+def mark_queued(job_dir: str, by: dict) -> None:
+    """Under the guard, and only while no live process holds the job: a job that has already
+    started (its lock is taken under the same guard) keeps its own status."""
+    with guard(job_dir):
+        if alive(read_json(os.path.join(job_dir, "lock"))) is False:
+            set_status(job_dir, "queued", by=by)
+
+
+def is_done(job_dir: str) -> bool:
+    return os.path.exists(os.path.join(job_dir, "DONE"))
+
+
+# ================================================================================================
+# 4. The job: what runs inside each submitit job
+# ================================================================================================
+class SearJob(submitit.helpers.Checkpointable):
+    """One sear.py run, started as a fresh process. Why a fresh process: sear.py renders with EGL,
+    and a process that rendered must not fork a renderer child; a new interpreter is always safe.
+    Checkpointable: a SLURM job that reaches its time limit is requeued, and this same call then
+    resumes the run from its last snapshot."""
+
+    def __init__(self, job_dir: str, args: list[str], resume_args: list[str], threads: int,
+                 script: str, python: str = sys.executable):
+        self.job_dir, self.args, self.resume_args = job_dir, list(args), list(resume_args)
+        self.threads, self.script, self.python = threads, script, python
+
+    def __call__(self) -> str:
+        me = whoami()
+        holder = take_lock(self.job_dir, me)
+        if holder is not None:
+            return f"skipped: already running ({describe(holder)})"
+        try:
+            return "done" if is_done(self.job_dir) else self.run(me)
+        except KeyboardInterrupt:
+            set_status(self.job_dir, "interrupted", error="interrupted; re-run the sweep to resume")
+            raise
+        finally:
+            drop_lock(self.job_dir, me)
+
+    def run(self, me: dict) -> str:
+        runs = run_dirs(self.job_dir)
+        if len(runs) > 1:
+            error = f"{os.path.join(self.job_dir, 'run')} holds {len(runs)} runs; move all but one out"
+            set_status(self.job_dir, "failed", error=error)
+            return f"failed: {error}"
+        moved = ""
+        if runs and os.path.exists(os.path.join(runs[0], "snapshot.pt")):
+            argv = ["--resume", runs[0], *self.resume_args]
+        else:
+            if runs:  # died before its first snapshot: keep it, out of the way, and start clean
+                moved = self.move_aside(runs[0])
+            argv = [*self.args, "--run-root", os.path.join(self.job_dir, "run")]
+        cmd = [self.python, self.script, *argv]
+        attempt = (read_json(os.path.join(self.job_dir, "status.json")) or {}).get("attempts", 0) + 1
+        set_status(self.job_dir, "running", attempts=attempt, owner=me)
+        env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "MKL_NUM_THREADS": str(self.threads),
+               "PYTHONUNBUFFERED": "1"}
+        with open(os.path.join(self.job_dir, "stdout.log"), "a") as out, \
+                open(os.path.join(self.job_dir, "stderr.log"), "a") as err:
+            stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+            for f in (out, err):
+                f.write(f"=== attempt {attempt} at {stamp}, {describe(me)}: {shlex.join(cmd)}\n")
+                if moved and f is out:
+                    f.write(f"moved the snapshot-less run {runs[0]} to {moved}\n")
+                f.flush()
+            offset = err.tell()
+            code = subprocess.run(cmd, stdout=out, stderr=err, env=env, cwd=self.job_dir).returncode
+        if code == 0:
+            with open(os.path.join(self.job_dir, "DONE"), "w") as f:
+                f.write(time.strftime("%Y-%m-%d %H:%M:%S\n"))
+            set_status(self.job_dir, "done", attempts=attempt, exit_code=0)
+            return "done"
+        how = f"exit code {code}" if code > 0 else f"killed by signal {-code}"
+        error = last_line(os.path.join(self.job_dir, "stderr.log"), offset) or how
+        set_status(self.job_dir, "failed", attempts=attempt, exit_code=code, error=f"{how}: {error}")
+        return f"failed: {how}: {error}"
+
+    def move_aside(self, run: str) -> str:
+        """<out>/<sweep>/<job>/run/<run> -> <out>/<sweep>.aside/<job>/<run>: outside the sweep's
+        folder, so that plot.py on the sweep folder does not pick it up."""
+        sweep_dir, job = os.path.split(os.path.normpath(self.job_dir))
+        dest = base = os.path.join(f"{sweep_dir}.aside", job, os.path.basename(run))
+        k = 1
+        while os.path.exists(dest):  # an earlier attempt of the same second: never overwrite it
+            dest, k = f"{base}~{k}", k + 1
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+        shutil.move(run, dest)
+        return dest
+
+
+# ================================================================================================
+# 5. Engines: local (N jobs at a time) or a SLURM array
+# ================================================================================================
+def cpu_count() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def pick_engine(args) -> str:
+    engine = submitit.AutoExecutor.which() if args.engine == "auto" else args.engine
+    if engine == "slurm" and shutil.which("srun") is None:
+        raise SweepError("--engine slurm: no SLURM on this machine (srun not found)")
+    slurm_only = [f for f, v in (("--partition", args.partition), ("--account", args.account),
+                                 ("--slurm-array-parallelism", args.slurm_array_parallelism)) if v is not None]
+    if engine != "slurm" and slurm_only:
+        why = " (srun not found)" if args.engine == "auto" else ""
+        raise SweepError(f"{slurm_only[0]} needs SLURM, but the engine is {engine}{why}")
+    for name in ("jobs", "threads", "time_limit", "gpus_per_job", "mem_gb", "slurm_array_parallelism"):
+        value, least = getattr(args, name), 0 if name == "gpus_per_job" else 1
+        if value is not None and value < least:
+            raise SweepError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
+    return engine
+
+
+def make_executor(args, engine: str, folder: str):
+    executor = submitit.AutoExecutor(folder=folder, cluster=engine)
+    gpus = args.gpus_per_job
+    if gpus is None:  # SLURM: the paper's runs need a GPU; locally: every GPU this machine has
+        import torch  # (0 GPUs locally would hide them: submitit sets CUDA_VISIBLE_DEVICES)
+        gpus = 1 if engine == "slurm" else torch.cuda.device_count()
+    params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", cpus_per_task=args.threads,
+                  gpus_per_node=gpus, mem_gb=args.mem_gb, slurm_partition=args.partition,
+                  slurm_account=args.account, slurm_array_parallelism=args.slurm_array_parallelism)
+    executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
+    return executor
+
+
+def outcome(job) -> str:
+    try:
+        return job.result()
+    except Exception as e:  # the job process itself failed (e.g. killed): its last line says why
+        return "failed: " + (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]
+
+
+def run_local(executor, jobs: dict, parallel: int) -> dict:
+    """Start the jobs `parallel` at a time; {spec: outcome}."""
+    pending, running, results = list(jobs), {}, {}
+    started = {}
+    try:
+        while pending or running:
+            while pending and len(running) < parallel:
+                spec = pending.pop(0)
+                running[spec], started[spec] = executor.submit(jobs[spec]), time.time()
+            time.sleep(0.2)
+            for spec, job in list(running.items()):
+                if job.done():
+                    del running[spec]
+                    results[spec] = outcome(job)
+                    print(f"[{len(results)}/{len(jobs)}] {spec.name}: {results[spec]} "
+                          f"({time.time() - started[spec]:.0f} s)", flush=True)
+    except KeyboardInterrupt:
+        for job in running.values():
+            job.cancel(check=False)
+        raise
+    return results
+
+
+# ================================================================================================
+# 6. Status table
+# ================================================================================================
+def job_state(job_dir: str) -> tuple[str, str]:
+    """(state, note): done / running / queued / failed / interrupted / not started."""
+    if is_done(job_dir):
+        return "done", ""
+    holder = read_json(os.path.join(job_dir, "lock"))
+    if holder and alive(holder) is not False:
+        return "running", describe(holder)
+    status = read_json(os.path.join(job_dir, "status.json")) or {}
+    state = status.get("state")
+    if state == "queued":
+        by = status.get("by")
+        if alive(by) is False:
+            return "not started", f"its sweep ({describe(by)}) stopped first"
+        return "queued", describe(by)
+    if state == "running":  # status says running, but the lock holder is gone
+        return "interrupted", "its process is gone; re-run the sweep to resume"
+    if state in ("failed", "interrupted"):
+        return state, status.get("error", "")
+    return "not started", ""
+
+
+def last_frame(job_dir: str) -> str:
+    runs = run_dirs(job_dir)
+    if not runs:
+        return "-"
+    try:
+        with open(os.path.join(runs[-1], "train.csv"), newline="") as f:
+            rows = list(csv.DictReader(f))
+        return rows[-1]["frame"] if rows else "0"
+    except (OSError, KeyError):
+        return "0"
+
+
+def status_table(out: str, specs: list[JobSpec]) -> str:
+    rows = [("job", "state", "frames", "note")]
+    counts = {}
+    for spec in specs:
+        d = os.path.join(out, spec.sweep, spec.name)
+        state, note = job_state(d)
+        counts[state] = counts.get(state, 0) + 1
+        rows.append((spec.name, state, f"{last_frame(d)}/{spec.frames}", note))
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    lines = ["  ".join(r[i].ljust(widths[i]) for i in range(3)) + "  " + r[3] for r in rows]
+    summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+    return "\n".join([*(ln.rstrip() for ln in lines), f"{len(specs)} jobs: {summary}"])
+
+
+# ================================================================================================
+# 7. Report: plot.py's loading, averaging and drawing
+# ================================================================================================
+def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> str | None:
+    """Per task: mean +- 95% CI over seeds for each method. Over the tasks (the grid's aggregate):
+    each seed's mean over all tasks, then mean +- 95% CI of those over seeds. Only finished runs
+    count. Writes <out>/<sweep>/report.png and report.md; returns the table."""
+    import plot
+    finished = []
+    for spec in specs:
+        d = os.path.join(out, spec.sweep, spec.name)
+        if is_done(d) and len(run_dirs(d)) == 1:
+            finished.append((spec, run_dirs(d)[0]))
+    if not finished:
+        print("report: no finished runs yet")
+        return None
+    if metric is None:  # a success rate where every run has one, else the return
+        metric = "success" if all(has_column(run, "success") for _, run in finished) else "return"
+    curves = {}
+    for spec, run in finished:
+        try:
+            r = plot.load_run(run, "eval", metric)
+        except plot.PlotError as e:
+            print(f"report: skipping {spec.name}: {e}")
+            continue
+        curves.setdefault((spec.env, spec.variant), {})[spec.seed] = (r["frames"], r["values"])
+    envs = list(dict.fromkeys(s.env for s in specs))
+    variants = list(dict.fromkeys(s.variant for s in specs))
+
+    def line(runs: list, label: str):
+        try:
+            return (*plot.aggregate(runs), len(runs), label)
+        except plot.PlotError as e:
+            print(f"report: {label}: {e}")
+            return None
+
+    panels = {}
+    for env in envs:
+        lines = {v: line(list(curves[(env, v)].values()), env) for v in variants if (env, v) in curves}
+        panels[env] = {v: ln for v, ln in lines.items() if ln}
+    if len(envs) > 1:
+        overall = f"mean over {len(envs)} tasks"
+        panels[overall] = {}
+        for v in variants:
+            seeds = [s for s in curves.get((envs[0], v), {}) if all(s in curves.get((e, v), {}) for e in envs)]
+            try:  # plot.aggregate over one seed's tasks: their mean at the frames every task reached
+                per_seed = [plot.aggregate([curves[(e, v)][s] for e in envs])[:2] for s in seeds]
+            except plot.PlotError as e:
+                print(f"report: {overall}, {v}: {e}")
+                continue
+            ln = line(per_seed, overall) if per_seed else None
+            if ln:
+                panels[overall][v] = ln
+    panels = {k: v for k, v in panels.items() if v}
+    if not panels:
+        return None
+    ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
+    png = os.path.join(out, sweep, "report.png")
+    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel}, mean ± 95% CI over seeds")
+    table = plot.summary_table(panels, metric)
+    note = f"{len(finished)} of {len(specs)} jobs finished; only finished runs are averaged."
+    with open(os.path.join(out, sweep, "report.md"), "w") as f:
+        f.write(f"# {sweep}\n\n{note}\n\n![curves](report.png)\n\n{table}\n")
+    print(f"{table}\n\n{note}\nwrote {png} and report.md")
+    return table
+
+
+def has_column(run: str, name: str) -> bool:
+    try:
+        with open(os.path.join(run, "eval.csv"), newline="") as f:
+            return name in (next(csv.reader(f), None) or [])
+    except OSError:
+        return False
+
+
+# ================================================================================================
+# 8. CLI
+# ================================================================================================
+class OneLineParser(argparse.ArgumentParser):
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    grids = "; ".join(f"{name}: {g.doc}" for name, g in GRIDS.items())
+    p = OneLineParser(prog="sweep.py", allow_abbrev=False,  # no abbreviations: --seed is sear.py's
+                      description=__doc__.split("\nJob directory")[0],
+                      formatter_class=argparse.RawDescriptionHelpFormatter,
+                      epilog="Unknown flags, and everything after --, go to sear.py.")
+    what = p.add_argument_group("what to run")
+    what.add_argument("--grid", help=f"a named grid of the paper: {grids}; transfer: not available yet")
+    what.add_argument("--envs", nargs="+", help="tasks (with --grid: a subset of the grid's)")
+    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its variants)")
+    what.add_argument("--seeds", nargs="+", help="seeds: 1-5, 1,3,7 or 1-3 9 (default: the grid's, else 1)")
+    what.add_argument("--name", help="sweep folder under --out (default: the grid's name, else custom)")
+    what.add_argument("--out", default="sweeps", help="folder of sweeps (default: sweeps)")
+    do = p.add_argument_group("what to do (default: run what is not finished)")
+    do.add_argument("--status", action="store_true", help="print a table of the jobs' states and exit")
+    do.add_argument("--report", action="store_true", help="draw report.png / report.md and exit")
+    do.add_argument("--dry-run", action="store_true", help="print the jobs and their sear.py commands, run nothing")
+    eng = p.add_argument_group("engine (submitit: SLURM when srun is found, else this machine)")
+    eng.add_argument("--engine", choices=("auto", "local", "slurm"), default="auto")
+    eng.add_argument("--jobs", type=int, help="local: jobs at a time (default: cores // --threads)")
+    eng.add_argument("--threads", type=int, default=1, help="torch threads per job (OMP_NUM_THREADS; default 1)")
+    eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, the authors')")
+    eng.add_argument("--gpus-per-job", type=int, help="default: 1 on SLURM, every visible GPU locally")
+    eng.add_argument("--mem-gb", type=int, default=32, help="SLURM memory per job (default 32; replay is ~5.5 GB)")
+    eng.add_argument("--partition", help="SLURM partition")
+    eng.add_argument("--account", help="SLURM account")
+    eng.add_argument("--slurm-array-parallelism", type=int, help="SLURM: array tasks at a time")
+    return p
+
+
+def load_specs(out: str, sweep: str) -> list[JobSpec]:
+    """The jobs a sweep folder already holds (for --status / --report without a grid or envs)."""
+    root = os.path.join(out, sweep)
+    if not os.path.isdir(root):
+        raise SweepError(f"no sweep folder {root}; give --grid or --envs/--methods, or the --name of a sweep")
+    specs = []
+    for name in sorted(os.listdir(root)):
+        data = read_json(os.path.join(root, name, "job.json"))
+        if data:
+            specs.append(JobSpec(**{f.name: data[f.name] for f in dataclasses.fields(JobSpec)}))
+    return specs
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours, after = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
+    args, unknown = build_parser().parse_known_args(ours)
+    try:
+        if not (args.grid or args.envs or args.methods) and (args.status or args.report) and not unknown + after:
+            args.sweep = args.name or "custom"
+            specs, grid = load_specs(args.out, args.sweep), None
+        else:
+            args.sweep, specs, grid = plan(args, unknown + after)
+        if args.status:
+            print(status_table(args.out, specs))
+            return 0
+        if args.report:
+            report(args.out, args.sweep, specs, grid.metric if grid else None)
+            return 0
+        engine = pick_engine(args)
+        return run(args, specs, grid, engine)
+    except SweepError as e:
+        print(f"sweep.py: error: {e}", file=sys.stderr)
+        return 2
+
+
+def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
+    sweep_dir = os.path.join(args.out, args.sweep)
+    dirs = {spec: os.path.abspath(os.path.join(sweep_dir, spec.name)) for spec in specs}
+    done = [s for s in specs if is_done(dirs[s])]
+    busy = [s for s in specs if s not in done and alive(read_json(os.path.join(dirs[s], "lock"))) is not False]
+    todo = [s for s in specs if s not in done and s not in busy]
+    parallel = args.jobs or max(1, cpu_count() // args.threads)
+    shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
+            f"{len({s.seed for s in specs})} seeds"
+    where = f"{engine}, {parallel} at a time, {args.threads} thread(s) each" if engine == "local" else engine
+    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running elsewhere, "
+          f"{len(todo)} to run ({where})", flush=True)
+    if args.dry_run:
+        for s in todo:
+            print(f"{s.name}: sear.py {shlex.join(s.args)}")
+        return 0
+    if not todo:
+        if engine == "local" and not busy:
+            report(args.out, args.sweep, specs, grid.metric if grid else None)
+        return 0
+
+    jobs, driver = {}, whoami()
+    for spec in todo:
+        d = dirs[spec]
+        os.makedirs(d, exist_ok=True)
+        write_json(os.path.join(d, "job.json"), dataclasses.asdict(spec))
+        jobs[spec] = SearJob(d, spec.args, spec.resume_args, args.threads, script=SEAR_PY)
+    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"))
+    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
+        import cloudpickle                # they need no `import sweep` from whatever their cwd is
+        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
+
+    if engine != "local":  # one SLURM array; this process only submits
+        with executor.batch():
+            submitted = [executor.submit(jobs[spec]) for spec in todo]
+        for spec, job in zip(todo, submitted):
+            mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
+        print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with "
+              f"--status, draw the curves with --report; logs in {sweep_dir}/<job>/")
+        return 0
+
+    for spec in todo:
+        mark_queued(dirs[spec], driver)
+    try:
+        results = run_local(executor, jobs, parallel)
+    except KeyboardInterrupt:
+        print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
+              "interrupted ones resume from their last snapshot)", file=sys.stderr)
+        return 130
+    failed = [s for s, r in results.items() if r.startswith("failed")]
+    print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
+          + (f"; {len(failed)} failed (see --status)" if failed else ""))
+    report(args.out, args.sweep, specs, grid.metric if grid else None)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
