@@ -763,7 +763,8 @@ class SEAREnv(gym.Env):
         self.backend.reset(episode_seed)
         if self.model.nhfield:
             # Tasks that draw a new terrain per episode (quadruped-escape) write
-            # it into the model; without this upload the pixels show the first one.
+            # it into the model; our renderers hold their own GPU copy (without
+            # this upload the first episode showed the XML's flat floor).
             self._upload(hfields=range(self.model.nhfield))
         rgb, mask = self._render()
         for _ in range(self.frame_stack):

@@ -158,7 +158,7 @@ def test_every_listed_dm_control_name_builds_and_steps():
 
 def test_new_terrain_per_episode_is_what_the_pixels_show():
     """quadruped-escape writes a new height field into the model at every reset; the renderer's
-    copy must follow (it used to show the first terrain forever)."""
+    copy must follow (the first episode used to show the XML's flat floor)."""
     env = make_env("quadruped-escape", seed=0, frame_stack=1, size=32, render_quality="fast")
     try:
         for seed in (1, 2):
