@@ -140,10 +140,11 @@ def test_every_listed_dm_control_name_builds_and_steps():
     a GL context freed late). Cheapest settings: fast render, one frame, 32 px; one env at a time."""
     names = [n for n in envs.env_names() if envs._parse_name(n)[0] in ("dmc", "distracting")]
     assert {"quadruped-walk", "dog-run", "walker-walk-distracting"} <= set(names)
-    failures = {}
+    failures, env = {}, None
     for name in names:
-        env = None
         try:
+            # As in any `env = make_env(...)` loop, the previous (closed) env is garbage only once
+            # the next one exists: the order that broke quadruped-fetch after quadruped-escape.
             env = make_env(name, seed=0, frame_stack=1, size=32, render_quality="fast")
             env.reset(seed=0)
             obs, reward, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
