@@ -38,8 +38,8 @@ MjModel/MjData (RGB plus segmentation), so camera, shadow and multisampling
 settings are handled in one place (``render_quality="paper"`` keeps each
 suite's own settings, ``"fast"`` switches off shadows and multisampling).
 
-Run ``python envs.py --gallery docs/suites.png`` to draw RGB | mask | overlay
-for one task of every suite.
+Run ``python envs.py --gallery runs/suites.png`` to draw RGB | mask | overlay
+for one task of every suite (``--force`` to overwrite an existing picture).
 """
 from __future__ import annotations
 
@@ -544,6 +544,12 @@ class _DMCBackend:
 
     def close(self):
         self.env.close()
+        # dm_control makes GL contexts of its own when a task touches
+        # physics.contexts (quadruped-escape uploads its terrain at every reset).
+        # Free them now: freed later by the garbage collector, while another
+        # env's renderer is current, they broke that env's segmentation render
+        # (quadruped-fetch after quadruped-escape: colours instead of ids).
+        self.physics.free()
 
 
 class _GymBackend:
@@ -734,7 +740,8 @@ class SEAREnv(gym.Env):
         atexit.register(_close_live_envs)
 
     # -- rendering ------------------------------------------------------------
-    def _upload_textures(self, textures):
+    def _upload(self, textures=(), hfields=()):
+        """Send changed textures / height fields to the GPU copies our renderers hold."""
         renderers = {id(r): r for r in (self._rgb_renderer, self._seg_renderer)}.values()
         for r in renderers:
             # mujoco.Renderer keeps its GL / MjrContext private; re-uploading
@@ -742,6 +749,8 @@ class SEAREnv(gym.Env):
             r._gl_context.make_current()
             for t in textures:
                 mujoco.mjr_uploadTexture(self.model, r._mjr_context, t)
+            for h in hfields:
+                mujoco.mjr_uploadHField(self.model, r._mjr_context, h)
 
     def segmentation(self) -> np.ndarray:
         """Raw segmentation (H, W, 2) int32 at mask resolution, camera orientation."""
@@ -792,8 +801,13 @@ class SEAREnv(gym.Env):
         episode_seed = int(self._rng.integers(2**31 - 1))
         if self._distractions is not None:
             # Before the physics reset: its mj_forward places the (perturbed) camera.
-            self._upload_textures(self._distractions.apply(self._rng))
+            self._upload(textures=self._distractions.apply(self._rng))
         self.backend.reset(episode_seed)
+        if self.model.nhfield:
+            # Tasks that draw a new terrain per episode (quadruped-escape) write
+            # it into the model; our renderers hold their own GPU copy (without
+            # this upload the first episode showed the XML's flat floor).
+            self._upload(hfields=range(self.model.nhfield))
         rgb, mask = self._render()
         for _ in range(self.frame_stack):
             self._frames.append(rgb)
@@ -979,8 +993,13 @@ def mask_downsample_figure(path: str, name: str = "metaworld-door-open", seed: i
     plt.close(fig)
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = _OneLineParser(prog="envs.py", description=__doc__.splitlines()[0])
     parser.add_argument("--gallery", metavar="PNG", help="draw RGB | mask | overlay per suite")
     parser.add_argument("--mask-figure", metavar="PNG",
                         help="draw the stride vs majority mask downsampling comparison")
@@ -988,10 +1007,14 @@ def main(argv=None) -> int:
     parser.add_argument("--backgrounds", metavar="DIR", help="background images for *-distracting")
     parser.add_argument("--render-quality", default="paper", choices=["paper", "fast"])
     parser.add_argument("--list", action="store_true", help="print the registered env names")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --gallery / --mask-figure PNG")
     args = parser.parse_args(argv)
     if not (args.gallery or args.mask_figure or args.list):
         parser.error("nothing to do: give --gallery PNG, --mask-figure PNG or --list")
     try:
+        for out in filter(None, (args.gallery, args.mask_figure)):
+            if os.path.exists(out) and not args.force:  # e.g. a tracked picture in docs/
+                raise EnvError(f"{out} exists; refusing to overwrite it (use --force)")
         for name in args.envs:   # fail fast, before any slow construction
             _parse_name(name)
         if args.backgrounds is not None:

@@ -16,8 +16,9 @@ Aligning runs of one group:
   train.csv  episodes end at different frames in each run, so the curves are linearly
              INTERPOLATED onto the union of their frames, cut to the span all runs cover.
 
-A markdown table (group, runs, last common frame, final mean +- CI) goes to stdout. Errors are
-one line on stderr, `plot.py: error: ...`, with exit code 2.
+A markdown table (group, runs, last common frame, final mean +- CI) goes to stdout. A run without
+the CSV (stopped before its first evaluation, or episode, ended) is skipped with one line on stderr.
+Errors are one line on stderr, `plot.py: error: ...`, with exit code 2.
 """
 from __future__ import annotations
 
@@ -37,6 +38,14 @@ METRICS = ("return", "success")
 
 class PlotError(Exception):
     """Bad input: reported as one line on stderr, exit code 2."""
+
+
+class NoLogYet(PlotError):
+    """A run without the CSV asked for: it stopped before writing its first row. Skipped, not fatal."""
+
+
+# What a run has done when it first writes each log.
+FIRST_ROW = {"eval": "its first evaluation", "train": "its first episode"}
 
 
 # ---------------------------------------------------------------- finding and reading runs
@@ -67,7 +76,7 @@ def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> di
         raise PlotError(f"{run_dir}/config.json: unreadable ({e})") from None
     path = os.path.join(run_dir, f"{csv_name}.csv")
     if not os.path.exists(path):
-        raise PlotError(f"{path}: missing")
+        raise NoLogYet(f"no {csv_name}.csv (the run stopped before {FIRST_ROW[csv_name]} ended)")
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         if not reader.fieldnames:
@@ -202,7 +211,15 @@ def main(argv=None) -> int:
         keys = [k.strip() for k in args.group.split(",") if k.strip()]
         if not keys:
             raise PlotError("--group needs at least one config key, e.g. method")
-        runs = [load_run(d, args.csv, args.metric) for d in find_runs(args.paths)]
+        runs = []
+        found = find_runs(args.paths)
+        for d in found:
+            try:
+                runs.append(load_run(d, args.csv, args.metric))
+            except NoLogYet as e:  # one run stopped early must not hide all the others
+                print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
+        if not runs:
+            raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
         envs = sorted({env_of(r) for r in runs})
         # One subplot per env, unless env is already told apart by the lines (or there is just one).
         by_env = len(envs) > 1 and "env" not in keys

@@ -112,6 +112,9 @@ class Config:
     curl_coef: float = arg(1.0, "curl: weight of the contrastive loss (CURL adds it with weight 1)")
     # --- logging ---
     log_every: float = arg(10.0, "seconds between progress lines")
+    # --- run directory / snapshots ---
+    snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at the next "
+                                        "episode end (0 = after every episode)")
 
 
 def _walker(cfg):
@@ -187,6 +190,8 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--mask-downsample must be majority or stride, got '{cfg.mask_downsample}'")
     if cfg.precision not in ("fp32", "bf16"):
         raise ConfigError(f"--precision must be fp32 or bf16, got '{cfg.precision}'")
+    if not cfg.snapshot_minutes >= 0:
+        raise ConfigError(f"--snapshot-minutes must be >= 0, got {cfg.snapshot_minutes}")
     if cfg.threads < 0:
         raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
@@ -860,37 +865,83 @@ def save_snapshot(run_dir, payload):
     os.replace(tmp, path)
 
 
+def first_sentence(text) -> str:
+    """The first sentence of a message, on one line. Error lines end at a sentence boundary; a
+    length cut would stop them mid-word (torch's archive errors run on for 400 characters)."""
+    text = " ".join(str(text).split())
+    end = text.find(". ")
+    sentence = text[: end + 1] if end >= 0 else text
+    return sentence if not sentence or sentence.endswith((".", "!", "?")) else sentence + "."
+
+
 def load_snapshot(run_dir):
     path = os.path.join(run_dir, "snapshot.pt")
     if not os.path.isdir(run_dir):
         raise ConfigError(f"--resume: no such run directory '{run_dir}'")
     if not os.path.exists(path):
-        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (one is written after the first evaluation's episode ends)")
+        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (the run stopped before its first "
+                          f"snapshot; see --snapshot-minutes)")
     try:
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # corrupt or foreign file: say so in one line
-        raise ConfigError(f"--resume: cannot read '{path}': {type(e).__name__}: {str(e).splitlines()[0][:200]}")
+        reason = first_sentence(e)
+        raise ConfigError(f"--resume: cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+
+
+def saved_buffer_t(path):
+    """The `t` (steps ever written) of a saved buffer, read without loading the buffer."""
+    with np.load(path) as data:
+        return int(data["t"])
 
 
 class Progress:
-    """A live line with frames/s and ETA: rewritten in place on a terminal, printed every
-    `every` seconds otherwise (CI logs, nohup)."""
+    """The live line: frame, training speed, ETA and what the loop is doing (an episode, or which
+    evaluation episode). On a terminal it is rewritten in place (at least once a second); otherwise
+    (CI logs, nohup) a line is printed every `every` seconds.
 
-    def __init__(self, total, every):
-        self.total, self.every, self.last = total, every, 0.0
+    The speed counts training time only: the loop excludes evaluations and snapshots from it, so a
+    ten-minute evaluation does not make the run look stalled. Evaluations are timed apart, and the
+    ETA is the sum of the two: frames left / training speed + evaluations left x seconds each."""
+
+    WIDTH = 120
+
+    def __init__(self, total, every, eval_every):
+        self.total, self.eval_every = total, eval_every
         self.tty = sys.stdout.isatty()
+        self.every = min(every, 1.0) if self.tty else every
+        self.last = 0.0
+        self.fps = 0.0  # training frames per second, set by the loop
+        self.eval_seconds = []  # duration of each evaluation of this process
 
-    def update(self, frame, fps, text, force=False):
+    def evals_left(self, next_eval):
+        """Scheduled evaluations before the end of the budget (the one due now included), plus the
+        final evaluation at its end."""
+        scheduled = math.ceil((self.total - next_eval) / self.eval_every) if next_eval < self.total else 0
+        return scheduled + 1
+
+    def eta(self, frame, next_eval, eval_done=0.0, eval_spent=0.0):
+        """Seconds to the end of the budget, inf while a speed is unknown. While an evaluation runs,
+        `eval_done` is the fraction of its episodes finished and `eval_spent` its seconds so far."""
+        train = (self.total - frame) / self.fps if self.fps > 0 else (0.0 if frame >= self.total else math.inf)
+        per_eval = (float(np.mean(self.eval_seconds)) if self.eval_seconds
+                    else eval_spent / eval_done if eval_done > 0 else None)
+        evals = self.evals_left(next_eval) - eval_done
+        return train + (0.0 if evals <= 0 else math.inf if per_eval is None else evals * per_eval)
+
+    def update(self, frame, text, eta, force=False):
         now = time.time()
         if not force and now - self.last < self.every:
             return
         self.last = now
-        eta = (self.total - frame) / fps if fps > 0 else float("inf")
-        eta_s = "?" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
-        if eta > 86400 and math.isfinite(eta):
-            eta_s = f"{eta / 86400:.1f}d"
-        line = f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {fps:.1f} fps | ETA {eta_s} | {text}"
-        print(("\r" + line.ljust(120)) if self.tty else line, end="" if self.tty else "\n", flush=True)
+        eta_s = ("?" if not math.isfinite(eta) else f"{eta / 86400:.1f}d" if eta > 86400
+                 else time.strftime("%H:%M:%S", time.gmtime(eta)))
+        line = (f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {self.fps:.1f} fps | "
+                f"ETA {eta_s} | {text}")
+        print(("\r" + line.ljust(self.WIDTH)) if self.tty else line, end="" if self.tty else "\n", flush=True)
+
+    def say(self, message):
+        """A line of its own (evaluation result, snapshot); on a terminal it replaces the live line."""
+        print(("\r" + message.ljust(self.WIDTH)) if self.tty else message, flush=True)
 
 
 def tensorboard_writer(run_dir):
@@ -953,103 +1004,142 @@ def make_envs(cfg: Config):
     return train_env, eval_env
 
 
-def evaluate(agent, env, cfg: Config, frame):
-    """Mean action, separately seeded env; the same reset seeds at every eval make evals comparable."""
+def evaluate(agent, env, cfg: Config, frame, on_step=None):
+    """Mean action, separately seeded env; the same reset seeds at every eval make evals comparable.
+    on_step(episode, step), if given, is called after every step (the progress line)."""
     returns, successes = [], []
     for i in range(cfg.eval_episodes):
         obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i))
-        done, ret, success = False, 0.0, False
+        done, ret, success, t = False, 0.0, False, 0
         while not done:
             action = agent.act(obs["pixels"], obs["mask"], frame // cfg.action_repeat, eval_mode=True)
             obs, reward, terminated, truncated, info = env.step(action)
             ret += reward
             success = success or bool(info.get("success", False))
             done = terminated or truncated
+            t += 1
+            if on_step:
+                on_step(i, t)
         returns.append(ret)
         if "success" in info:
             successes.append(float(success))
     return float(np.mean(returns)), (float(np.mean(successes)) if successes else None)
 
 
+class Interrupted(Exception):
+    """Ctrl-C during training; the message says what was saved and how to continue."""
+
+
+def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes):
+    """What is true after a Ctrl-C: whether a snapshot exists, at which frame, and the command that
+    continues from it."""
+    if run_dir is None:
+        return "interrupted before the run directory was made; nothing was saved"
+    head = f"interrupted at frame {frame} ({where})"
+    resume = f"continue with: python sear.py --resume {run_dir}"
+    if snapshot_frame == frame:
+        return f"{head}: snapshot.pt holds this frame; {resume}"
+    if snapshot_frame is not None:
+        return (f"{head}: the last snapshot (frame {snapshot_frame}) stands, the {frame - snapshot_frame} "
+                f"frames after it will be re-run; {resume}")
+    return (f"{head}: {run_dir} has no snapshot yet (the first is written at the first episode end after "
+            f"{snapshot_minutes:g} minutes), so there is nothing to resume; start a new run")
+
+
 def train(cfg: Config, resume_state: dict | None = None):
-    """Train from scratch, or continue from `resume_state` (the snapshot of run dir cfg.resume)."""
-    if cfg.resume:
-        run_dir = cfg.resume
-    device = pick_device(cfg.device)
-    torch.set_num_threads(cfg.threads or default_threads())
-    train_env, eval_env = make_envs(cfg)  # also resolves action_repeat 0 to the suite's default
-    if not cfg.resume:
-        run_dir = new_run_dir(cfg)
-        with open(os.path.join(run_dir, "config.json"), "w") as f:
-            json.dump(dataclasses.asdict(cfg), f, indent=2)
+    """Train from scratch, or continue from `resume_state` (the snapshot of run dir cfg.resume).
 
-    random.seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
-    sample_rng = np.random.default_rng(cfg.seed)
+    Snapshots are taken between episodes only: the next episode's reset seed follows from its
+    number, so a resumed run (with --save-buffer) replays exactly what the uninterrupted run would
+    have done. They follow a wall clock (--snapshot-minutes), not the evaluation schedule, are also
+    written on Ctrl-C between episodes, and after the final evaluation at the end of the budget."""
+    # What a Ctrl-C message needs to know, kept up to date as the run goes.
+    run_dir = cfg.resume or None
+    snapshot_frame = resume_state["counters"]["step"] * cfg.action_repeat if resume_state else None
+    frame = snapshot_frame or 0
+    phase = "starting"  # then "mid-episode" / "between episodes", then "end of budget"
+    try:
+        device = pick_device(cfg.device)
+        torch.set_num_threads(cfg.threads or default_threads())
+        train_env, eval_env = make_envs(cfg)  # also resolves action_repeat 0 to the suite's default
+        if not cfg.resume:
+            run_dir = new_run_dir(cfg)
+            with open(os.path.join(run_dir, "config.json"), "w") as f:
+                json.dump(dataclasses.asdict(cfg), f, indent=2)
 
-    action_dim = train_env.action_space.shape[0]
-    agent = Agent(cfg, action_dim, device)
-    pixel_shape = train_env.observation_space["pixels"].shape
-    buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
-                          cfg.nstep, cfg.discount)
-    print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
-          f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
-          f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
+        random.seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        torch.manual_seed(cfg.seed)
+        sample_rng = np.random.default_rng(cfg.seed)
 
-    step, episode, next_eval, wall_offset = 0, 0, 0, 0.0
-    if resume_state is not None:
-        agent.load_state_dict(resume_state["agent"])
-        set_rng_state(resume_state["rng"])
-        sample_rng.bit_generator.state = resume_state["sample_rng"]
-        c = resume_state["counters"]
-        step, episode, next_eval, wall_offset = c["step"], c["episode"], c["next_eval"], c["wall_time"]
-        if c["mid_episode"]:  # only the end-of-budget snapshot can cut an episode: drop its rest
-            episode += 1
-        buffer_path = os.path.join(run_dir, "buffer.npz")
-        if os.path.exists(buffer_path) and resume_state.get("buffer_saved"):
-            buffer.load(buffer_path)
-        else:
-            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
-        for name in ("train.csv", "eval.csv"):
-            set_aside_rows_after(os.path.join(run_dir, name), step * cfg.action_repeat)
-        print(f"resumed at frame {step * cfg.action_repeat}, episode {episode}")
+        action_dim = train_env.action_space.shape[0]
+        agent = Agent(cfg, action_dim, device)
+        pixel_shape = train_env.observation_space["pixels"].shape
+        buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
+                              cfg.nstep, cfg.discount)
+        print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
+              f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
+              f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
 
-    train_log = CsvLog(os.path.join(run_dir, "train.csv"))
-    eval_log = CsvLog(os.path.join(run_dir, "eval.csv"))
-    writer = tensorboard_writer(run_dir)
-    progress = Progress(cfg.frames, cfg.log_every)
-    start = time.time() - wall_offset
-    frame = step * cfg.action_repeat
-    last_frame_time, last_frame = time.time(), frame
+        step, episode, next_eval, last_eval_frame, wall_offset = 0, 0, 0, -1, 0.0
+        if resume_state is not None:
+            agent.load_state_dict(resume_state["agent"])
+            set_rng_state(resume_state["rng"])
+            sample_rng.bit_generator.state = resume_state["sample_rng"]
+            c = resume_state["counters"]
+            step, episode, next_eval, wall_offset = c["step"], c["episode"], c["next_eval"], c["wall_time"]
+            last_eval_frame = c.get("last_eval_frame", -1)
+            if c["mid_episode"]:  # only the end-of-budget snapshot can cut an episode: drop its rest
+                episode += 1
+            buffer_path = os.path.join(run_dir, "buffer.npz")
+            if not (os.path.exists(buffer_path) and resume_state.get("buffer_saved")):
+                print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
+            elif saved_buffer_t(buffer_path) != resume_state.get("buffer_t", saved_buffer_t(buffer_path)):
+                print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
+            else:
+                buffer.load(buffer_path)
+            for name in ("train.csv", "eval.csv"):
+                set_aside_rows_after(os.path.join(run_dir, name), step * cfg.action_repeat)
+            print(f"resumed at frame {step * cfg.action_repeat}, episode {episode}")
 
-    def snapshot(mid_episode=False):
-        payload = {"config": dataclasses.asdict(cfg), "agent": agent.state_dict(), "rng": rng_state(),
-                   "sample_rng": sample_rng.bit_generator.state, "buffer_saved": cfg.save_buffer,
-                   "counters": {"step": step, "episode": episode, "next_eval": next_eval,
-                                "mid_episode": mid_episode, "wall_time": time.time() - start}}
-        if cfg.save_buffer:
-            buffer.save(os.path.join(run_dir, "buffer.npz"))
-        save_snapshot(run_dir, payload)
+        train_log = CsvLog(os.path.join(run_dir, "train.csv"))
+        eval_log = CsvLog(os.path.join(run_dir, "eval.csv"))
+        writer = tensorboard_writer(run_dir)
+        progress = Progress(cfg.frames, cfg.log_every, cfg.eval_every)
+        start = time.time() - wall_offset
+        frame = step * cfg.action_repeat
+        # Training speed: frames since the last episode end over the training seconds since then.
+        # Evaluations and snapshots push window_start forward by their own duration.
+        window_start, window_frame = time.time(), frame
+        last_snapshot_time = time.time()
 
-    # Snapshots are taken between episodes (the first boundary after each evaluation): the next
-    # episode's reset seed follows from its number, so a resumed run (with --save-buffer) replays
-    # exactly what the uninterrupted run would have done.
-    need_reset, snapshot_due = True, False
-    while frame < cfg.frames:
-        if need_reset:
-            if snapshot_due:
-                snapshot()
-                snapshot_due = False
-            obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
-            buffer.add_first(obs)
-            ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
-            need_reset = False
+        def snapshot(mid_episode=False):
+            nonlocal snapshot_frame, last_snapshot_time
+            payload = {"config": dataclasses.asdict(cfg), "agent": agent.state_dict(), "rng": rng_state(),
+                       "sample_rng": sample_rng.bit_generator.state, "buffer_saved": cfg.save_buffer,
+                       "buffer_t": buffer.t,
+                       "counters": {"step": step, "episode": episode, "next_eval": next_eval,
+                                    "last_eval_frame": last_eval_frame, "mid_episode": mid_episode,
+                                    "wall_time": time.time() - start}}
+            # Buffer first, then snapshot.pt; each write is atomic, and buffer_t tells a resume
+            # whether a kill between the two left a buffer newer than the snapshot.
+            if cfg.save_buffer:
+                buffer.save(os.path.join(run_dir, "buffer.npz"))
+            save_snapshot(run_dir, payload)
+            snapshot_frame, last_snapshot_time = frame, time.time()
 
-        if frame >= next_eval:
-            print(("\n" if progress.tty else "") + f"evaluating at frame {frame} ({cfg.eval_episodes} episodes)",
-                  flush=True)
-            eval_return, eval_success = evaluate(agent, eval_env, cfg, frame)
+        def run_evaluation():
+            nonlocal next_eval, last_eval_frame
+            progress.say(f"evaluating at frame {frame} ({cfg.eval_episodes} episodes)")
+            began = time.time()
+
+            def show(i, t):
+                done = i / cfg.eval_episodes
+                progress.update(frame, f"eval {i + 1}/{cfg.eval_episodes} step {t}",
+                                progress.eta(frame, next_eval, done, time.time() - began))
+
+            eval_return, eval_success = evaluate(agent, eval_env, cfg, frame, on_step=show)
+            progress.eval_seconds.append(time.time() - began)
             row = {"frame": frame, "step": step, "episode": episode, "return": eval_return,
                    "wall_time": round(time.time() - start, 2)}
             if eval_success is not None:
@@ -1057,59 +1147,98 @@ def train(cfg: Config, resume_state: dict | None = None):
             eval_log.write(row)
             if writer:
                 writer.add_scalar("eval/return", eval_return, frame)
-            print(f"eval @ frame {frame}: return {eval_return:.1f}"
-                  + (f", success {eval_success:.2f}" if eval_success is not None else ""))
-            next_eval += cfg.eval_every
-            snapshot_due = True
+            progress.say(f"eval @ frame {frame}: return {eval_return:.1f}"
+                         + (f", success {eval_success:.2f}" if eval_success is not None else "")
+                         + f" ({progress.eval_seconds[-1]:.1f} s)")
+            last_eval_frame = frame
+            while next_eval <= frame:
+                next_eval += cfg.eval_every
 
-        if frame < cfg.seed_frames:
-            action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
-        else:
-            action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
-        # Learning starts once the buffer holds the seed frames' worth of steps: after the random
-        # phase of a new run, and again after a resume that could not bring its buffer back.
-        if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
-                and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-            metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), step)
-            for k, v in metrics.items():
-                ep_metrics.setdefault(k, []).append(v)
+        def paused(fn, *args):
+            """Run an evaluation or a snapshot off the training-speed clock."""
+            nonlocal window_start
+            began = time.time()
+            fn(*args)
+            window_start += time.time() - began
 
-        obs, reward, terminated, truncated, info = train_env.step(action)
-        buffer.add(action, reward, terminated, obs)
-        step += 1
-        frame = step * cfg.action_repeat
-        ep_return += reward
-        ep_len += 1
-        ep_success = ep_success or bool(info.get("success", False))
+        need_reset = True
+        while frame < cfg.frames:
+            if need_reset:
+                if phase == "between episodes" and time.time() - last_snapshot_time >= 60 * cfg.snapshot_minutes:
+                    paused(snapshot)
+                    progress.say(f"snapshot at frame {frame}")
+                phase = "mid-episode"  # from here on the next episode has begun
+                obs, info = train_env.reset(seed=episode_seed(cfg.seed, episode))
+                buffer.add_first(obs)
+                ep_return, ep_len, ep_success, ep_metrics = 0.0, 0, False, {}
+                need_reset = False
 
-        fps = (frame - last_frame) / max(time.time() - last_frame_time, 1e-9)
-        if terminated or truncated:
-            row = {"frame": frame, "step": step, "episode": episode, "return": ep_return, "length": ep_len}
-            if "success" in info:
-                row["success"] = float(ep_success)
-            row.update({k: (float(np.mean(ep_metrics[k])) if k in ep_metrics else "") for k in agent.metric_names})
-            row.update({"fps": round(fps, 2), "wall_time": round(time.time() - start, 2)})
-            train_log.write(row)
-            if writer:
-                writer.add_scalar("train/return", ep_return, frame)
-                for k in ep_metrics:
-                    writer.add_scalar(f"train/{k}", float(np.mean(ep_metrics[k])), frame)
-            progress.update(frame, fps, f"ep {episode} return {ep_return:.1f}", force=True)
-            last_frame_time, last_frame = time.time(), frame
-            episode += 1
-            need_reset = True
-        else:
-            progress.update(frame, fps, f"ep {episode} step {ep_len}")
+            if frame >= next_eval:
+                paused(run_evaluation)
 
-    snapshot(mid_episode=not need_reset)
-    if progress.tty:
-        print()
-    print(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
-    train_env.close()
-    eval_env.close()
-    if writer:
-        writer.close()
-    return run_dir
+            if frame < cfg.seed_frames:
+                action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
+            else:
+                action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
+            # Learning starts once the buffer holds the seed frames' worth of steps: after the random
+            # phase of a new run, and again after a resume that could not bring its buffer back.
+            if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
+                    and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
+                metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), step)
+                for k, v in metrics.items():
+                    ep_metrics.setdefault(k, []).append(v)
+
+            obs, reward, terminated, truncated, info = train_env.step(action)
+            buffer.add(action, reward, terminated, obs)
+            step += 1
+            frame = step * cfg.action_repeat
+            ep_return += reward
+            ep_len += 1
+            ep_success = ep_success or bool(info.get("success", False))
+
+            progress.fps = (frame - window_frame) / max(time.time() - window_start, 1e-9)
+            if terminated or truncated:
+                row = {"frame": frame, "step": step, "episode": episode, "return": ep_return, "length": ep_len}
+                if "success" in info:
+                    row["success"] = float(ep_success)
+                row.update({k: (float(np.mean(ep_metrics[k])) if k in ep_metrics else "")
+                            for k in agent.metric_names})
+                row.update({"fps": round(progress.fps, 2), "wall_time": round(time.time() - start, 2)})
+                train_log.write(row)
+                if writer:
+                    writer.add_scalar("train/return", ep_return, frame)
+                    for k in ep_metrics:
+                        writer.add_scalar(f"train/{k}", float(np.mean(ep_metrics[k])), frame)
+                progress.update(frame, f"ep {episode} return {ep_return:.1f}", progress.eta(frame, next_eval),
+                                force=True)
+                window_start, window_frame = time.time(), frame
+                episode += 1
+                need_reset = True
+                phase = "between episodes"  # the only state a snapshot can capture exactly
+            else:
+                progress.update(frame, f"ep {episode} step {ep_len}", progress.eta(frame, next_eval))
+
+        # The end of the budget: a last evaluation, so eval.csv ends at the last frame, then the
+        # final snapshot (it may cut an episode; a resume drops that episode's rest).
+        phase = "end of budget"
+        if last_eval_frame != frame:
+            run_evaluation()
+        snapshot(mid_episode=not need_reset)
+        progress.say(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
+        train_env.close()
+        eval_env.close()
+        if writer:
+            writer.close()
+        return run_dir
+    except KeyboardInterrupt:
+        # Between episodes the state is exactly resumable; at the end of the budget it is what the
+        # final snapshot holds anyway (a resume then runs only the final evaluation).
+        if phase in ("between episodes", "end of budget") and snapshot_frame != frame:
+            try:
+                snapshot(mid_episode=phase == "end of budget" and not need_reset)
+            except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
+                pass
+        raise Interrupted(interrupt_message(run_dir, frame, phase, snapshot_frame, cfg.snapshot_minutes)) from None
 
 
 # ================================================================================================
@@ -1139,7 +1268,7 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume"}
+RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes"}
 
 
 def parse_args(argv=None) -> tuple[Config, dict | None]:
@@ -1189,8 +1318,11 @@ def main(argv=None):
     except ConfigError as e:
         print(f"sear.py: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("\ninterrupted: the last snapshot is intact; continue with --resume RUN_DIR", file=sys.stderr)
+    except Interrupted as e:
+        print(f"\nsear.py: {e}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:  # while reading the flags or the snapshot: nothing started
+        print("\nsear.py: interrupted before training started; nothing was saved", file=sys.stderr)
         return 130
     return 0
 

@@ -1,10 +1,14 @@
 """sear.py end to end on CPU with tiny budgets: outputs, snapshots, --resume, bad input."""
 import csv
 import hashlib
+import io
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -20,6 +24,31 @@ def run(args, tmp_path, timeout=600):
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     return subprocess.run([sys.executable, str(ROOT / "sear.py"), "--run-root", str(tmp_path / "runs"), *args],
                           capture_output=True, text=True, timeout=timeout, cwd=tmp_path, env=env)
+
+
+def interrupt_when(args, tmp_path, line_pattern, timeout=120):
+    """Start sear.py, send SIGINT (Ctrl-C) once a stdout line matches, return (code, stdout, stderr)."""
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    p = subprocess.Popen([sys.executable, str(ROOT / "sear.py"), "--run-root", str(tmp_path / "runs"), *args],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env)
+    seen, deadline = [], time.time() + timeout
+    try:
+        for line in p.stdout:
+            seen.append(line)
+            if re.search(line_pattern, line):
+                p.send_signal(signal.SIGINT)
+                break
+            assert time.time() < deadline, "".join(seen[-20:])
+        out, err = p.communicate(timeout=timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    return p.returncode, "".join(seen) + out, err
+
+
+# Mid-episode long enough (40 steps) for a Ctrl-C sent at step 3 to land well inside the episode.
+LONG_EPISODES = [*TINY, "--frames", "100000", "--max-episode-steps", "40", "--log-every", "0",
+                 "--eval-every", "100000"]
 
 
 def rows(path):
@@ -50,11 +79,12 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
         assert (run_dir / name).exists(), name
     train = rows(run_dir / "train.csv")
     evals = rows(run_dir / "eval.csv")
-    assert [int(r["frame"]) for r in evals] == [0, 24]
+    assert [int(r["frame"]) for r in evals] == [0, 24, 48]  # the last one: the end of the budget
     assert [int(r["frame"]) for r in train] == [16, 32, 48]  # 8-step episodes, action repeat 2
     assert {"return", "critic_loss", "actor_loss", "recon_loss", "mask_loss", "fps", "wall_time"} <= set(train[0])
     assert train[-1]["mask_loss"] != ""  # learning happened after the seed frames
     assert json.loads((run_dir / "config.json").read_text())["action_repeat"] == 2
+    assert "snapshot at frame" not in r.stdout  # evaluations do not trigger snapshots: the clock does
 
     # Resume from the last snapshot (written at the end, frame 48) and train further.
     r = run(["--resume", str(run_dir), "--frames", "80"], tmp_path)
@@ -62,7 +92,7 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     assert "resumed at frame 48" in r.stdout
     assert "no saved replay buffer" not in r.stdout  # --save-buffer: the buffer came back
     evals = rows(run_dir / "eval.csv")
-    assert [int(r["frame"]) for r in evals] == [0, 24, 48, 72]
+    assert [int(r["frame"]) for r in evals] == [0, 24, 48, 72, 80]
     assert [int(r["frame"]) for r in rows(run_dir / "train.csv")] == [16, 32, 48, 64, 80]
     assert only_run_dir(tmp_path) == run_dir  # no second run directory
 
@@ -82,6 +112,7 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--resume", "does/not/exist"], "no such run directory"),
     (["--env", "walker-walk-distracting", "--backgrounds", "does/not/exist"], "does not exist"),
     (["--mask-downsample", "every-other"], "--mask-downsample must be"),
+    (["--snapshot-minutes", "-1"], "--snapshot-minutes must be >= 0"),
 ])
 def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
     r = run(args, tmp_path)
@@ -91,16 +122,116 @@ def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
     assert not (tmp_path / "runs").exists()
 
 
-def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path):
+def truncated_torch_file():
+    import torch
+    data = io.BytesIO()
+    torch.save({"agent": torch.zeros(1000)}, data)
+    return data.getvalue()[:2000]  # a copy cut short
+
+
+@pytest.mark.parametrize("content, reason", [
+    (b"this is not a torch file", "UnpicklingError: could not find MARK."),
+    (truncated_torch_file(), "PytorchStreamReader failed reading zip archive: failed finding central directory."),
+])
+def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path, content, reason):
     run_dir = tmp_path / "runs" / "walker-walk__sear__1__x"
     run_dir.mkdir(parents=True)
-    (run_dir / "snapshot.pt").write_bytes(b"this is not a torch file")
+    (run_dir / "snapshot.pt").write_bytes(content)
     (run_dir / "train.csv").write_text("frame,return\n2,1.0\n")
     before = tree_digest(run_dir)
     r = run(["--resume", str(run_dir)], tmp_path)
     assert r.returncode != 0
     assert len(r.stderr.strip().splitlines()) == 1 and "cannot read" in r.stderr, r.stderr
+    assert r.stderr.rstrip().endswith(reason), r.stderr  # whole sentences, never cut mid-word
     assert tree_digest(run_dir) == before
+
+
+def test_interrupt_before_the_first_snapshot_says_there_is_nothing_to_resume(tmp_path):
+    code, out, err = interrupt_when(["--env", "walker-walk", *LONG_EPISODES], tmp_path, r"\| ep 0 step 3$")
+    assert code == 130, err
+    run_dir = only_run_dir(tmp_path)
+    message = err.strip().splitlines()
+    assert len(message) == 1 and "Traceback" not in err, err
+    assert re.fullmatch(rf"sear.py: interrupted at frame \d+ \(mid-episode\): {re.escape(str(run_dir))} has no "
+                        r"snapshot yet \(.*\), so there is nothing to resume; start a new run", message[0]), message
+    assert not (run_dir / "snapshot.pt").exists()
+
+
+def test_interrupt_mid_episode_after_a_snapshot_names_it_and_the_run_dir(tmp_path):
+    args = ["--env", "walker-walk", *LONG_EPISODES, "--snapshot-minutes", "0"]  # a snapshot every episode
+    code, out, err = interrupt_when(args, tmp_path, r"\| ep 1 step 3$")
+    assert code == 130, err
+    run_dir = only_run_dir(tmp_path)
+    m = re.fullmatch(r"sear.py: interrupted at frame (\d+) \(mid-episode\): the last snapshot \(frame 80\) stands, "
+                     r"the (\d+) frames after it will be re-run; continue with: python sear.py --resume (\S+)",
+                     err.strip())
+    assert m, err
+    assert int(m[1]) - 80 == int(m[2]) > 0 and m[3] == str(run_dir)  # the real path, resumable as printed
+    import torch
+    assert torch.load(run_dir / "snapshot.pt", weights_only=False)["counters"]["step"] * 2 == 80
+
+
+def test_interrupt_between_episodes_writes_a_snapshot(tmp_path):
+    """Ctrl-C while the loop sits between episodes (here: while the first snapshot is being
+    written) saves that exact state; a deterministic stand-in for a well-timed SIGINT."""
+    driver = (
+        "import sys, sear\n"
+        "real, calls = sear.save_snapshot, []\n"
+        "def ctrl_c_once(run_dir, payload):\n"
+        "    calls.append(payload['counters']['step'])\n"
+        "    if len(calls) == 1:\n"
+        "        raise KeyboardInterrupt\n"
+        "    real(run_dir, payload)\n"
+        "sear.save_snapshot = ctrl_c_once\n"
+        "sys.exit(sear.main(sys.argv[1:]))\n")
+    r = subprocess.run([sys.executable, "-c", driver, "--run-root", str(tmp_path / "runs"), "--env", "walker-walk",
+                        *TINY, "--frames", "1000", "--snapshot-minutes", "0"],
+                       capture_output=True, text=True, timeout=300, cwd=ROOT,
+                       env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+    assert r.returncode == 130, r.stderr[-2000:]
+    run_dir = only_run_dir(tmp_path)
+    assert r.stderr.strip() == (f"sear.py: interrupted at frame 16 (between episodes): snapshot.pt holds this frame; "
+                                f"continue with: python sear.py --resume {run_dir}")
+    import torch
+    counters = torch.load(run_dir / "snapshot.pt", weights_only=False)["counters"]
+    assert counters["step"] == 8 and counters["episode"] == 1 and not counters["mid_episode"]
+
+
+def test_snapshots_follow_their_own_clock_and_the_budget_ends_with_an_evaluation(tmp_path):
+    """--snapshot-minutes 0: a snapshot at every episode end, though evaluations are far apart;
+    the budget (40 frames, mid-episode) still ends with an evaluation at frame 40."""
+    r = run(["--env", "walker-walk", *TINY, "--frames", "40", "--eval-every", "100000", "--snapshot-minutes", "0"],
+            tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert re.findall(r"^snapshot at frame (\d+)", r.stdout, re.M) == ["16", "32"]
+    run_dir = only_run_dir(tmp_path)
+    assert [int(row["frame"]) for row in rows(run_dir / "eval.csv")] == [0, 40]
+    import torch
+    counters = torch.load(run_dir / "snapshot.pt", weights_only=False)["counters"]
+    assert counters["step"] == 20 and counters["mid_episode"] and counters["last_eval_frame"] == 40
+
+
+def test_evaluation_shows_which_episode_it_is_on(tmp_path):
+    r = run(["--env", "walker-walk", *TINY, "--frames", "16", "--eval-episodes", "2", "--log-every", "0"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    evals = [line.split(" | ")[-1] for line in r.stdout.splitlines() if " | eval " in line]
+    # Two evaluations (frame 0 and the final one at frame 16), each 2 episodes x 8 steps.
+    assert evals == [f"eval {i}/2 step {t}" for i in (1, 2) for t in range(1, 9)] * 2, r.stdout
+
+
+def test_progress_speed_and_eta_count_training_and_evaluations_apart(capsys):
+    import sear
+    p = sear.Progress(total=1000, every=0, eval_every=100)
+    p.fps = 10.0
+    assert p.eta(500, next_eval=600) == float("inf")  # no evaluation timed yet
+    assert p.eta(500, next_eval=600, eval_done=0.5, eval_spent=2.0) == 50 + (4 + 1 - 0.5) * 4.0
+    p.eval_seconds = [5.0]
+    assert p.eta(500, next_eval=600) == 500 / 10 + (4 + 1) * 5  # 600, 700, 800, 900 and the final one
+    assert p.eta(1000, next_eval=1000) == 5.0  # only the final evaluation is left
+    p.tty = True
+    p.update(500, "eval 3/10 step 7", 75.0)
+    out = capsys.readouterr().out
+    assert out.startswith("\rframe 500/1000 (50.0%) | 10.0 fps | ETA 00:01:15 | eval 3/10 step 7") and "\n" not in out
 
 
 def test_resume_refuses_to_change_the_experiment(tmp_path):

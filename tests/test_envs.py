@@ -135,6 +135,42 @@ def test_env_names_and_action_repeat():
     assert envs.default_action_repeat("adroit-pen") == 1
 
 
+def test_every_listed_dm_control_name_builds_and_steps():
+    """`envs.py --list` is a promise: each dm_control name it prints builds, resets and steps (the
+    quadruped tasks once died in dm_control on numpy 2.4, quadruped-fetch after quadruped-escape on
+    a GL context freed late). Cheapest settings: fast render, one frame, 32 px; one env at a time."""
+    names = [n for n in envs.env_names() if envs._parse_name(n)[0] in ("dmc", "distracting")]
+    assert {"quadruped-walk", "dog-run", "walker-walk-distracting"} <= set(names)
+    failures, env = {}, None
+    for name in names:
+        try:
+            # As in any `env = make_env(...)` loop, the previous (closed) env is garbage only once
+            # the next one exists: the order that broke quadruped-fetch after quadruped-escape.
+            env = make_env(name, seed=0, frame_stack=1, size=32, render_quality="fast")
+            env.reset(seed=0)
+            obs, reward, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+            assert obs["pixels"].shape == (3, 32, 32) and np.isfinite(reward)
+        except Exception as e:  # collect them all: one run names every broken task
+            failures[name] = f"{type(e).__name__}: {e}"
+        finally:
+            if env is not None:
+                env.close()
+    assert not failures, failures
+
+
+def test_new_terrain_per_episode_is_what_the_pixels_show():
+    """quadruped-escape writes a new height field into the model at every reset; the renderer's
+    copy must follow (the first episode used to show the XML's flat floor)."""
+    env = make_env("quadruped-escape", seed=0, frame_stack=1, size=32, render_quality="fast")
+    try:
+        for seed in (1, 2):
+            obs, _ = env.reset(seed=seed)
+            env._upload(hfields=range(env.model.nhfield))  # what a fresh renderer would see
+            assert np.array_equal(env._render()[0], obs["pixels"])
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("name", ["walker-walk", "walker-walk-distracting",
                                   "metaworld-door-open", "kitchen-kettle", "adroit-door"])
 def test_reset_seed_reproducible(get_env, name):
@@ -584,6 +620,18 @@ def test_backgrounds_dir_without_images(tmp_path):
 def run_cli(*args):
     return subprocess.run([sys.executable, str(ROOT / "envs.py"), *args], capture_output=True,
                           text=True, timeout=120, env={**os.environ, "MUJOCO_GL": "egl"})
+
+
+def test_cli_refuses_to_overwrite_a_picture_without_force(tmp_path):
+    out = tmp_path / "suites.png"
+    out.write_bytes(b"precious")
+    for flag in ("--gallery", "--mask-figure"):
+        proc = run_cli(flag, str(out), "--envs", "walker-walk")
+        assert proc.returncode == 2 and out.read_bytes() == b"precious"
+        assert proc.stderr == f"envs.py: error: {out} exists; refusing to overwrite it (use --force)\n"
+    proc = run_cli("--gallery", str(out), "--envs", "walker-walk", "--render-quality", "fast", "--force")
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes().startswith(b"\x89PNG")
 
 
 @pytest.mark.parametrize("args", [

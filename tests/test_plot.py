@@ -159,14 +159,39 @@ def test_no_runs_is_one_line_exit_2(tmp_path):
     assert "Traceback" not in p.stderr
 
 
-@pytest.mark.parametrize("breakage", ["missing eval", "empty eval", "header only", "unknown metric",
-                                      "bad flag", "no such path"])
+def test_runs_without_the_csv_are_skipped_by_name_and_the_rest_drawn(runs, tmp_path):
+    """A run stopped during its first evaluation has no eval.csv: skip it, draw the others."""
+    stopped = sorted(runs.iterdir())[:2]  # two drq seeds
+    for d in stopped:
+        (d / "eval.csv").unlink()
+    out = tmp_path / "curves.png"
+    p = subprocess.run([sys.executable, PLOT_PY, str(runs), "--out", str(out)],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert out.read_bytes().startswith(PNG_MAGIC)
+    lines = p.stderr.splitlines()
+    assert len(lines) == 2 and all(line.startswith("plot.py: skipping ") for line in lines), p.stderr
+    assert [line.split()[2].rstrip(":") for line in lines] == [str(d) for d in stopped]
+    assert "no eval.csv" in lines[0] and "first evaluation" in lines[0]
+    assert "| walker-walk | drq | 1 | 20000 |" in p.stdout and "| walker-walk | sear | 3 | 20000 |" in p.stdout
+
+
+def test_nothing_left_to_draw_is_one_line_exit_2(runs, tmp_path, capsys):
+    for d in runs.iterdir():
+        (d / "eval.csv").unlink()
+    code, _, err = run_main(capsys, runs, "--out", tmp_path / "x.png")
+    assert code == 2 and not (tmp_path / "x.png").exists()
+    errors = [line for line in err.splitlines() if not line.startswith("plot.py: skipping ")]
+    assert errors == ["plot.py: error: nothing to draw: none of the 6 runs found has written eval.csv yet"], err
+    code, _, err = run_main(capsys, runs, "--csv", "train", "--out", tmp_path / "x.png")  # no train.csv either
+    assert code == 2 and "first episode" in err and "has written train.csv" in err
+
+
+@pytest.mark.parametrize("breakage", ["empty eval", "header only", "unknown metric", "bad flag", "no such path"])
 def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, breakage):
     eval_csv = next(runs.iterdir()) / "eval.csv"
     argv = [runs, "--out", tmp_path / "x.png"]
-    if breakage == "missing eval":
-        eval_csv.unlink()
-    elif breakage == "empty eval":
+    if breakage == "empty eval":
         eval_csv.write_text("")
     elif breakage == "header only":
         eval_csv.write_text("frame,step,episode,return,wall_time\n")
