@@ -3,6 +3,7 @@
 Usage:  python plot.py runs/ --out curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py maps RUN_A [RUN_B ...] --out maps.png [--frames N]   (activation maps, below)
 
 Arguments are run directories (holding config.json), parent folders (every folder below holding a
 config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"); each
@@ -16,6 +17,10 @@ Aligning runs of one group:
   train.csv  episodes end at different frames in each run, so the curves are linearly
              INTERPOLATED onto the union of their frames, cut to the span all runs cover.
 
+`plot.py maps` draws what the encoder's last convolution responds to, for runs on one env and on
+the same frames (the paper's section 5), and measures each channel's share of activation on the
+robot; its table (robot / environment channels per run) goes to stdout.
+
 A markdown table (group, runs, last common frame, final mean +- CI) goes to stdout. A run without
 the CSV (stopped before its first evaluation, or episode, ended) is skipped with one line on stderr.
 Errors are one line on stderr, `plot.py: error: ...`, with exit code 2.
@@ -24,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import glob
 import json
 import math
@@ -186,6 +192,253 @@ def summary_table(panels: dict, metric: str) -> str:
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------- activation maps: plot.py maps
+# The paper's recipe (section 5, "Visualizing Feature Maps"): the ReLU output of the encoder's last
+# convolution (32 x 35 x 35), each channel resized to the image (84 x 84), normalised to [0, 1],
+# coloured and blended over the image. Beyond the paper, each channel's share of activation mass on
+# the robot, against the robot's share of the image.
+MAPS_STRIDE = 25  # agent steps between the frames shown
+# Where a unit of the 35 x 35 map looks: the trunk (3x3 stride 2, then three 3x3 stride 1, no padding)
+# gives unit j the input pixels 2j .. 2j + 14, centred on 2j + 7. The overlays stretch the map over
+# the whole image instead (the paper's resize), up to 7 px off at the borders.
+RF_STRIDE, RF_OFFSET = 2, 7
+ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; < 0.5x: an environment channel
+
+
+def load_snapshot_run(run_dir: str):
+    """(sear.Config, snapshot) of a run directory; PlotError for anything that is not one."""
+    import torch
+    import sear
+    if not os.path.isfile(os.path.join(run_dir, "config.json")):
+        raise PlotError(f"{run_dir} is not a run directory (no config.json)")
+    path = os.path.join(run_dir, "snapshot.pt")
+    if not os.path.isfile(path):
+        raise PlotError(f"{run_dir} has no snapshot.pt (the run stopped before its first snapshot)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        known = {f.name for f in dataclasses.fields(sear.Config)}
+        cfg = sear.Config(**{k: v for k, v in state["config"].items() if k in known})
+    except Exception as e:  # a corrupt or foreign file: one line, whole sentences
+        reason = sear.first_sentence(e)
+        raise PlotError(f"cannot read {path}: {type(e).__name__}" + (f": {reason}" if reason else "")) from None
+    return cfg, state
+
+
+def trained_agent(cfg, state, action_dim: int):
+    import torch
+    import sear
+    agent = sear.Agent(cfg, action_dim, torch.device("cpu"))
+    try:
+        agent.load_state_dict(state["agent"])
+    except (KeyError, RuntimeError) as e:
+        raise PlotError(f"snapshot does not fit its config's networks: {sear.first_sentence(e)}") from None
+    return agent
+
+
+def open_env(cfg):
+    """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
+    clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
+    import envs
+    try:
+        return envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", variation_seed=cfg.seed,
+                             frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None,
+                             backgrounds=cfg.backgrounds or None, difficulty=cfg.difficulty,
+                             render_quality=cfg.render_quality, mask_downsample=cfg.mask_downsample,
+                             camera_distraction=cfg.camera_distraction, color_distraction=cfg.color_distraction)
+    except envs.EnvError as e:
+        raise PlotError(str(e)) from None
+
+
+def map_frames(env, cfg, agent, n: int):
+    """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart, from the reset of the
+    run's first evaluation episode, acting with `agent`'s mean action; and the steps they were at."""
+    import sear
+    episode, t, pixels, masks, steps = 0, 0, [], [], []
+    obs, _ = env.reset(seed=sear.episode_seed(cfg.seed + 100_000, episode))
+    while True:
+        if t % MAPS_STRIDE == 0:
+            pixels.append(obs["pixels"]), masks.append(obs["mask"]), steps.append(t)
+            if len(pixels) == n:
+                return np.stack(pixels), np.stack(masks).astype(bool), steps
+        obs, _, terminated, truncated, _ = env.step(agent.act(obs["pixels"], obs["mask"], 0, eval_mode=True))
+        t += 1
+        if terminated or truncated:  # a short episode: the next evaluation episode goes on
+            episode += 1
+            obs, _ = env.reset(seed=sear.episode_seed(cfg.seed + 100_000, episode))
+
+
+def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """The ReLU output of the encoder's last convolution, (N, 32, 35, 35), for uint8 observations:
+    caught on the way through the encoder's own forward (its normalisation, its input channels)."""
+    import torch
+    caught = []
+    hook = agent.encoder.convs.register_forward_hook(lambda module, inputs, output: caught.append(output))
+    try:
+        with torch.no_grad():
+            x = agent.encoder_input(torch.as_tensor(pixels).float(), torch.as_tensor(masks).float())
+            agent.encode(x)
+    finally:
+        hook.remove()
+    return caught[0].float().numpy()
+
+
+def overlay_maps(image: np.ndarray, maps: np.ndarray, alpha: float = 0.5) -> np.ndarray:
+    """Each channel of `maps` (C, h, w) as a heat map over `image` (H, W, 3) uint8: resized to H x W
+    (bilinear), normalised to [0, 1] per channel, coloured with jet, blended. -> (C, H, W, 3) uint8."""
+    import torch
+    import torch.nn.functional as F
+    from matplotlib import colormaps
+    h, w = image.shape[:2]
+    up = F.interpolate(torch.as_tensor(maps)[None], size=(h, w), mode="bilinear", align_corners=False)[0].numpy()
+    lo, hi = up.min(axis=(1, 2), keepdims=True), up.max(axis=(1, 2), keepdims=True)
+    norm = (up - lo) / np.where(hi > lo, hi - lo, 1.0)  # a flat channel stays 0
+    heat = colormaps["jet"](norm)[..., :3]
+    return np.round(255 * ((1 - alpha) * image[None] / 255.0 + alpha * heat)).astype(np.uint8)
+
+
+def channel_grid(tiles: np.ndarray, cols: int = 8, pad: int = 2) -> np.ndarray:
+    """Tiles (C, H, W, 3) in rows of `cols`, white gaps of `pad` px -> one (R*H + (R-1)*pad,
+    cols*W + (cols-1)*pad, 3) image."""
+    c, h, w, _ = tiles.shape
+    rows = math.ceil(c / cols)
+    grid = np.full((rows * h + (rows - 1) * pad, cols * w + (cols - 1) * pad, 3), 255, np.uint8)
+    for i, tile in enumerate(tiles):
+        r, k = divmod(i, cols)
+        grid[r * (h + pad):r * (h + pad) + h, k * (w + pad):k * (w + pad) + w] = tile
+    return grid
+
+
+def robot_units(masks: np.ndarray, side: int) -> np.ndarray:
+    """The true mask at the centre of each map unit's receptive field: (N, H, W) -> (N, side, side)."""
+    centres = RF_OFFSET + RF_STRIDE * np.arange(side)
+    return masks[:, centres][:, :, centres]
+
+
+def robot_share(maps: np.ndarray, robot: np.ndarray) -> np.ndarray:
+    """Per channel, the share of its activation mass (over all frames and units) that falls on robot
+    units: sum(a * robot) / sum(a), maps (N, C, h, w), robot (N, h, w). NaN for a channel that never
+    fires. A channel that fires evenly everywhere gets the robot's share of the units."""
+    mass = maps.sum(axis=(0, 2, 3))
+    on_robot = (maps * robot[:, None]).sum(axis=(0, 2, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return on_robot / mass
+
+
+def maps_figure(out: str, frames: dict, runs: list[dict], mask_fraction: float):
+    """One row per frame: the image (true mask outlined), then each run's 32 channels as a 4 x 8
+    grid, sorted by share on robot (highest first, number in the corner); below, the histogram of
+    the shares per run against the mask fraction."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(frames["images"])
+    grid_h, grid_w = runs[0]["grids"][0].shape[:2]
+    fig = plt.figure(figsize=((grid_h + grid_w * len(runs)) / 100 + 1, n * (grid_h / 100 + 0.4) + 3.2),
+                     layout="constrained")
+    gs = fig.add_gridspec(n + 1, 1 + len(runs), width_ratios=[grid_h] + [grid_w] * len(runs),
+                          height_ratios=[grid_h] * n + [0.9 * grid_h])
+    tile = (grid_h + 2) // 4  # 4 rows of tiles with 2-px gaps
+    for i in range(n):
+        ax = fig.add_subplot(gs[i, 0])
+        ax.imshow(frames["images"][i])
+        ax.contour(frames["masks"][i], levels=[0.5], colors="magenta", linewidths=0.7)
+        ax.set_title(f"step {frames['steps'][i]} (robot outlined)", fontsize=8)
+        ax.axis("off")
+        for j, run in enumerate(runs):
+            ax = fig.add_subplot(gs[i, 1 + j])
+            ax.imshow(run["grids"][i])
+            for rank, channel in enumerate(run["order"]):
+                r, k = divmod(rank, 8)
+                share = run["share"][channel]
+                ax.text(k * tile + 2, r * tile + 2, "dead" if np.isnan(share) else f"{share:.2f}",
+                        color="white", fontsize=5, va="top")
+            ax.axis("off")
+            if i == 0:
+                ax.set_title(run["label"], fontsize=9)
+    ax = fig.add_subplot(gs[n, 1:])
+    bins = np.linspace(0, 1, 41)
+    for j, run in enumerate(runs):
+        live = run["share"][~np.isnan(run["share"])]
+        ax.hist(live, bins=bins, histtype="step", lw=1.5, color=f"C{j}",
+                label=f"{run['label']}: {run['robot']} robot, {run['environment']} environment channels")
+    ax.axvline(mask_fraction, color="k", lw=1, label=f"mask fraction {mask_fraction:.3f}")
+    for factor in (ROBOT, ENVIRONMENT):
+        ax.axvline(factor * mask_fraction, color="k", lw=0.8, ls="--")
+    ax.set_xlabel("share of a channel's activation on the robot (dashed: 0.5x and 2x the mask fraction)")
+    ax.set_ylabel("channels")
+    ax.legend(fontsize=7)
+    fig.suptitle("Last-convolution activation maps (ReLU, 32 x 35 x 35 resized to 84 x 84), channels sorted "
+                 "by share on robot", fontsize=10)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
+def maps_table(runs: list[dict], mask_fraction: float) -> str:
+    lines = [f"mask fraction (robot units of the 35x35 map, over the frames): {mask_fraction:.4f}", "",
+             f"| run | method | trained frames | robot channels (share > {ROBOT:g}x) | environment channels "
+             f"(share < {ENVIRONMENT:g}x) | dead | median share |", "|---|---|---|---|---|---|---|"]
+    for run in runs:
+        live = run["share"][~np.isnan(run["share"])]
+        median = f"{np.median(live):.4f}" if len(live) else "-"
+        lines.append(f"| {run['dir']} | {run['method']} | {run['frame']} | {run['robot']} | "
+                     f"{run['environment']} | {run['dead']} | {median} |")
+    return "\n".join(lines)
+
+
+def maps_main(argv) -> int:
+    parser = OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's last "
+                           "convolution for one or more runs on the same frames (the paper's section 5), "
+                           "and each channel's share of activation on the robot.")
+    parser.add_argument("runs", nargs="+", help="run directories (config.json and snapshot.pt), all on one env")
+    parser.add_argument("--out", default="maps.png", help="PNG to write (default maps.png)")
+    parser.add_argument("--frames", type=int, default=2, help=f"frames to show, {MAPS_STRIDE} agent steps apart")
+    parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    args = parser.parse_args(argv)
+    try:
+        if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
+            raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
+        if args.frames < 1:
+            raise PlotError(f"--frames must be >= 1, got {args.frames}")
+        loaded = [(os.path.normpath(d), *load_snapshot_run(d)) for d in args.runs]
+        first = loaded[0][1]
+        for d, cfg, _ in loaded[1:]:
+            if (cfg.env, cfg.frame_stack) != (first.env, first.frame_stack):
+                raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), {loaded[0][0]} on "
+                                f"{first.env} (frame stack {first.frame_stack}): maps compare runs on the same frames")
+        import sear
+        import torch
+        torch.set_num_threads(sear.default_threads())
+        env = open_env(first)
+        agents = [trained_agent(cfg, state, env.action_space.shape[0]) for _, cfg, state in loaded]
+        # The frames: the first run's env, config and policy; every run sees exactly these.
+        pixels, masks, steps = map_frames(env, first, agents[0], args.frames)
+        env.close()
+        frames = {"images": pixels[:, -3:].transpose(0, 2, 3, 1), "masks": masks[:, -1], "steps": steps}
+        all_maps = [last_conv_maps(agent, pixels, masks) for agent in agents]
+        robot = robot_units(frames["masks"], all_maps[0].shape[-1])
+        frac = float(robot.mean())
+        runs = []
+        for (d, cfg, state), maps in zip(loaded, all_maps):
+            share = robot_share(maps, robot)
+            order = np.argsort(-np.nan_to_num(share, nan=-1.0), kind="stable")
+            frame = state["counters"]["step"] * cfg.action_repeat
+            runs.append({
+                "dir": d, "method": cfg.method, "frame": frame, "share": share, "order": order,
+                "label": f"{cfg.method} seed {cfg.seed}, {short_frames(frame)} frames",
+                "robot": int(np.sum(share > ROBOT * frac)), "environment": int(np.sum(share < ENVIRONMENT * frac)),
+                "dead": int(np.isnan(share).sum()),
+                "grids": [channel_grid(overlay_maps(img, m)[order]) for img, m in zip(frames["images"], maps)]})
+        maps_figure(args.out, frames, runs, frac)
+    except PlotError as e:
+        print(f"plot.py maps: error: {e}", file=sys.stderr)
+        return 2
+    print(maps_table(runs, frac))
+    print(f"\nwrote {args.out}")
+    return 0
+
+
 # ---------------------------------------------------------------- CLI
 class OneLineParser(argparse.ArgumentParser):
     def error(self, message):
@@ -193,6 +446,9 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    if argv[:1] == ["maps"]:  # a folder of runs named "maps" is given as ./maps
+        return maps_main(argv[1:])
     parser = OneLineParser(prog="plot.py", description=__doc__.split("\n\n")[0],
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")

@@ -69,6 +69,8 @@ class Config:
     recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code "
                                "where the two differ: RECIPES below, README's table); explicit flags win")
     save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
+    save_video: bool = arg(False, "write each evaluation's first episode to videos/eval_<frame>.mp4: camera | true "
+                                  "mask | predicted mask | reconstruction (the panels the method has)")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
@@ -196,6 +198,11 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
         raise ConfigError(f"--render-quality must be paper or fast, got '{cfg.render_quality}'")
+    if cfg.save_video:
+        try:
+            import imageio_ffmpeg  # noqa: F401  (brings its own ffmpeg binary)
+        except ImportError:
+            raise ConfigError("--save-video needs imageio-ffmpeg: pip install -r requirements.txt") from None
 
 
 # ================================================================================================
@@ -383,9 +390,14 @@ class AuxLoss(nn.Module):
     shift). It returns its weighted contribution to Eq. 6 and its unweighted terms for the logs.
     Its parameters are optimised together with the encoder and the critic."""
     metric_names: tuple[str, ...] = ()
+    decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
 
     def forward(self, encoder, latent, obs, obs_aug, mask_aug):
         raise NotImplementedError
+
+    def decode(self, latent) -> dict:
+        """What the decoders make of a latent, for the evaluation's metrics and videos."""
+        return {}
 
     def after_update(self, encoder):
         """Called after each optimiser step (CURL updates its momentum encoder here)."""
@@ -396,6 +408,7 @@ class SearAux(AuxLoss):
     of the latent is z (reconstruction) and the SECOND half is z_R (mask). With split=False both
     decoders read the whole latent (appendix "Auxiliary Mask Loss Without Latent Separation")."""
     metric_names = ("recon_loss", "mask_loss")
+    decodes = ("mask", "recon")
 
     def __init__(self, cfg: Config, latent_dim: int, split: bool = True):
         super().__init__()
@@ -417,12 +430,17 @@ class SearAux(AuxLoss):
         loss = self.c1 * recon_loss + self.c2 * mask_loss
         return loss, {"recon_loss": recon_loss.item(), "mask_loss": mask_loss.item()}
 
+    def decode(self, latent):
+        z, z_r = self.decoder_inputs(latent)
+        return {"mask": self.mask_decoder(z_r), "recon": self.recon_decoder(z)}
+
 
 class AEAux(AuxLoss):
     """DrQ-AE: one reconstruction decoder on the whole latent, no mask. As in the authors' code
     (sear/agents/drqv2AE.py, cfgs/agent/drqv2AE.yaml), the decoder starts from 32 channels, the
     loss weight is twice SEAR's c1, and there is no latent penalty (SAC-AE's is --ae-latent-lambda)."""
     metric_names = ("recon_loss",)
+    decodes = ("recon",)
 
     def __init__(self, cfg: Config, latent_dim: int):
         super().__init__()
@@ -434,6 +452,9 @@ class AEAux(AuxLoss):
         penalty = 0.5 * latent.pow(2).sum(1).mean()
         loss = self.c1 * recon_loss + self.latent_lambda * penalty
         return loss, {"recon_loss": recon_loss.item()}
+
+    def decode(self, latent):
+        return {"recon": self.recon_decoder(latent)}
 
 
 def patch_mask(n, size, patch, ratio, device):
@@ -464,6 +485,9 @@ class MAEAux(AuxLoss):
         pred = self.recon_decoder(encoder(masked))
         recon_loss = reconstruction_loss(pred, obs_aug, weight=hidden)
         return self.c1 * recon_loss, {"recon_loss": recon_loss.item()}
+
+    # At evaluation nothing is hidden: the decoder reconstructs from the whole image's latent.
+    decodes, decode = AEAux.decodes, AEAux.decode
 
 
 class CURLAux(AuxLoss):
@@ -1004,6 +1028,142 @@ def make_envs(cfg: Config):
     return train_env, eval_env
 
 
+# --- What the decoders see at evaluation: representation metrics and videos ---------------------
+def mask_iou(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    """Per frame, the intersection over union of two binary masks (B, H, W) -> (B,). NaN where both
+    are empty: with no robot in view and none predicted there is nothing to score."""
+    pred, true = pred.bool().flatten(1), true.bool().flatten(1)
+    return (pred & true).sum(1) / (pred | true).sum(1)
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per frame, the peak signal-to-noise ratio in dB of images in [0, 1] (B, ...) -> (B,)."""
+    mse = (pred.float() - target.float()).pow(2).flatten(1).mean(1)
+    return -10.0 * torch.log10(mse)  # 10 log10(1 / mse): the peak is 1
+
+
+class EvalWatch:
+    """The eval env as evaluate() sees it, plus a look at what the decoders make of it.
+
+    Every observation the env returns (each reset and step: all frames of all evaluation episodes)
+    is encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its newest frame
+    is scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per pixel, where
+    the env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so with
+    --mask-noise or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1] image,
+    after the [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a video
+    path the first episode is also written as an MP4, the panels side by side: camera | true mask |
+    predicted mask (the sigmoid, grey) | reconstruction, each only where the method has it. A method
+    without decoders and without a video has its observations passed through untouched."""
+
+    BATCH = 32
+    SCALE = 4  # nearest upscaling, 84 -> 336 px: visible, and a multiple of ffmpeg's 16-px macro blocks
+    LABEL = 16  # height of the strip that names the panels (336 + 16 = 22 x 16 again)
+    FPS = 20
+    METRICS = ("mask_iou", "mask_bce", "recon_psnr")
+
+    def __init__(self, agent: Agent, env, video_path: str | None = None):
+        self.agent, self.env, self.video_path = agent, env, video_path
+        self.decodes = agent.aux.decodes if agent.aux is not None else ()
+        self.true_mask = agent.method.uses_mask  # mask-free methods' envs skip the segmentation render
+        self.pending, self.values, self.episode, self.video = [], {}, -1, None
+
+    def __getattr__(self, name):  # everything else (spaces, close, ...) is the env's
+        return getattr(self.env, name)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.episode += 1
+        self.see(obs)
+        return obs, info
+
+    def step(self, action):
+        obs, *rest = self.env.step(action)
+        self.see(obs)
+        return (obs, *rest)
+
+    def see(self, obs):
+        filming = self.video_path is not None and self.episode == 0
+        if self.decodes or filming:  # the env's arrays are fresh at every step: kept, not copied
+            self.pending.append((filming, obs["pixels"], obs["mask"][-1]))
+            if len(self.pending) == self.BATCH:
+                self.flush()
+
+    @torch.no_grad()
+    def flush(self):
+        if not self.pending:
+            return
+        filming, pixels, masks = zip(*self.pending)
+        self.pending = []
+        agent = self.agent
+        pixels = torch.as_tensor(np.stack(pixels), device=agent.device).float()
+        true = torch.as_tensor(np.stack(masks), device=agent.device).float()
+        panels = {"camera": pixels[:, -3:] / 255.0}  # the newest frame of each stack, in [0, 1]
+        if self.true_mask:
+            panels["true mask"] = true
+        decoded = {}
+        if self.decodes:
+            latent = agent.encode(pixels)  # no random shift at evaluation
+            with agent.conv_precision():
+                decoded = agent.aux.decode(latent)
+        if "mask" in decoded:
+            logits = decoded["mask"][:, -1].float()
+            panels["predicted mask"] = torch.sigmoid(logits)
+            if self.true_mask:
+                self.add("mask_iou", mask_iou(logits > 0, true))  # sigmoid > 0.5 <=> logit > 0
+                bce = F.binary_cross_entropy_with_logits(logits, true, reduction="none")
+                self.add("mask_bce", bce.flatten(1).mean(1))
+        if "recon" in decoded:
+            panels["reconstruction"] = decoded["recon"][:, -3:].float().clamp(-0.5, 0.5) + 0.5
+            self.add("recon_psnr", psnr(panels["reconstruction"], panels["camera"]))
+        if any(filming):
+            self.film(panels, np.flatnonzero(filming))
+
+    def add(self, name, per_frame: torch.Tensor):
+        self.values.setdefault(name, []).extend(per_frame.tolist())
+
+    def film(self, panels: dict, rows):
+        """Append frames `rows` of the batch to the video: panels side by side, upscaled, labelled."""
+        import imageio.v2 as imageio  # imageio-ffmpeg brings the ffmpeg binary; needed only here
+        width = panels["camera"].shape[-1] * self.SCALE
+        if self.video is None:
+            os.makedirs(os.path.dirname(self.video_path), exist_ok=True)
+            # One encoder thread: the video is a side job of an evaluation on a shared machine.
+            self.video = imageio.get_writer(self.video_path, fps=self.FPS, codec="libx264", macro_block_size=16,
+                                            ffmpeg_params=["-threads", "1"])
+            self.label_strip = label_strip(list(panels), width, self.LABEL)
+        side = [p if p.dim() == 4 else p.unsqueeze(1).expand(-1, 3, -1, -1) for p in panels.values()]
+        strip = (torch.cat(side, dim=3)[rows] * 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        for frame in strip:
+            big = frame.repeat(self.SCALE, axis=0).repeat(self.SCALE, axis=1)
+            for k in range(1, len(panels)):  # a white rule between panels, drawn over their edge pixels
+                big[:, k * width - 1:k * width + 1] = 255
+            self.video.append_data(np.concatenate([self.label_strip, big], axis=0))
+
+    def finish(self) -> dict:
+        """Score the frames still pending and close the video. Returns the metrics' means over frames
+        (for the IoU, over the frames where robot or prediction is present)."""
+        self.flush()
+        if self.video is not None:
+            self.video.close()
+            self.video = None
+        scores = {}
+        for name in self.METRICS:
+            values = [v for v in self.values.get(name, ()) if not math.isnan(v)]
+            if name in self.values:
+                scores[name] = float(np.mean(values)) if values else float("nan")
+        return scores
+
+
+def label_strip(labels: list[str], panel_width: int, height: int) -> np.ndarray:
+    """A black strip (height, panel_width * len(labels), 3) uint8 with each panel's name in white."""
+    from PIL import Image, ImageDraw
+    strip = Image.new("RGB", (panel_width * len(labels), height))
+    draw = ImageDraw.Draw(strip)
+    for i, label in enumerate(labels):
+        draw.text((i * panel_width + 4, 2), label, fill=(255, 255, 255))
+    return np.asarray(strip)
+
+
 def evaluate(agent, env, cfg: Config, frame, on_step=None):
     """Mean action, separately seeded env; the same reset seeds at every eval make evals comparable.
     on_step(episode, step), if given, is called after every step (the progress line)."""
@@ -1138,17 +1298,25 @@ def train(cfg: Config, resume_state: dict | None = None):
                 progress.update(frame, f"eval {i + 1}/{cfg.eval_episodes} step {t}",
                                 progress.eta(frame, next_eval, done, time.time() - began))
 
-            eval_return, eval_success = evaluate(agent, eval_env, cfg, frame, on_step=show)
+            # The watch scores what the decoders make of every evaluation frame, and films episode 0.
+            watch = EvalWatch(agent, eval_env, os.path.join(run_dir, "videos", f"eval_{frame}.mp4")
+                              if cfg.save_video else None)
+            eval_return, eval_success = evaluate(agent, watch, cfg, frame, on_step=show)
+            scores = watch.finish()
             progress.eval_seconds.append(time.time() - began)
             row = {"frame": frame, "step": step, "episode": episode, "return": eval_return,
                    "wall_time": round(time.time() - start, 2)}
             if eval_success is not None:
                 row["success"] = eval_success
+            row.update(scores)
             eval_log.write(row)
             if writer:
                 writer.add_scalar("eval/return", eval_return, frame)
+                for name, value in scores.items():
+                    writer.add_scalar(f"eval/{name}", value, frame)
             progress.say(f"eval @ frame {frame}: return {eval_return:.1f}"
                          + (f", success {eval_success:.2f}" if eval_success is not None else "")
+                         + "".join(f", {name} {value:.3g}" for name, value in scores.items())
                          + f" ({progress.eval_seconds[-1]:.1f} s)")
             last_eval_frame = frame
             while next_eval <= frame:
@@ -1268,7 +1436,8 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes"}
+RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
+                     "save_video"}
 
 
 def parse_args(argv=None) -> tuple[Config, dict | None]:
