@@ -38,10 +38,32 @@ import sys
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-import torch
-import torch.nn as nn
-import torch.nn.functional as F
+# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
+# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
+# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
+GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
+
+
+def reexec_with_huge_pages():
+    """On Linux/glibc, restart this process once with the GLIBC_MALLOC tunables above.
+    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) would otherwise be mapped
+    and unmapped by glibc at every update: with 4 KB pages ~1.8M page faults per SEAR update, and
+    still ~60k with huge pages alone (EXPERIMENTS.md, "Update speed"). glibc reads GLIBC_TUNABLES
+    only at start-up, hence the re-exec. Other platforms ignore the variable."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
+        return
+    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
+    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
+
+
+if __name__ == "__main__":  # before numpy and torch load: a re-exec costs a bare interpreter, not torch's import
+    reexec_with_huge_pages()
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import torch.nn as nn  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
 
 
 # ================================================================================================
@@ -1244,25 +1266,6 @@ def train(cfg: Config, resume_state: dict | None = None):
 # ================================================================================================
 # 9. CLI
 # ================================================================================================
-# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
-# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
-# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
-GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
-
-
-def reexec_with_huge_pages():
-    """On Linux/glibc, restart this process once with transparent huge pages for malloc'd blocks.
-    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) are mapped and unmapped
-    by glibc at every update; with 4 KB pages that is ~1.8M page faults per SEAR update, and
-    huge pages cut the update time by about a third (EXPERIMENTS.md, "Update speed"). glibc reads
-    GLIBC_TUNABLES only at start-up, hence the re-exec. Other platforms ignore the variable."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
-        return
-    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
-    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
-
-
 class OneLineParser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -1328,5 +1331,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    reexec_with_huge_pages()
     sys.exit(main())
