@@ -33,8 +33,10 @@ import dataclasses
 import json
 import math
 import os
+import queue
 import random
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -84,6 +86,8 @@ class Config:
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
     precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
                                  "actor, critic and losses stay fp32")
+    prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
+                                "background thread while the current update runs")
     threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
                           "Several runs on one machine: give each cores / runs")
     run_root: str = arg("runs", "folder that holds run directories")
@@ -214,6 +218,8 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--precision must be fp32 or bf16, got '{cfg.precision}'")
     if not cfg.snapshot_minutes >= 0:
         raise ConfigError(f"--snapshot-minutes must be >= 0, got {cfg.snapshot_minutes}")
+    if cfg.prefetch not in ("auto", "on", "off"):
+        raise ConfigError(f"--prefetch must be auto, on or off, got '{cfg.prefetch}'")
     if cfg.threads < 0:
         raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
@@ -761,8 +767,10 @@ class ReplayBuffer:
     def can_sample(self):
         return self.t - max(0, self.t - self.capacity) > self.nstep + 1
 
-    def sample(self, batch_size, rng: np.random.Generator):
-        lo, hi = max(0, self.t - self.capacity), self.t - 1 - self.nstep
+    def sample(self, batch_size, rng: np.random.Generator, margin: int = 0):
+        """`margin` skips the oldest slots: a background sampler must not read a slot that the
+        training loop is overwriting while it samples."""
+        lo, hi = max(0, self.t - self.capacity) + margin, self.t - 1 - self.nstep
         l = rng.integers(lo, hi + 1, size=batch_size)
         bad = self.first[(l + 1) % self.capacity]
         while bad.any():  # rejection keeps sampling uniform over valid starts without listing them
@@ -809,6 +817,53 @@ class ReplayBuffer:
             for name in ("frames", "masks", "actions", "rewards", "terminal", "first"):
                 getattr(self, name)[:n] = data[name]
             self.t = int(data["t"])  # a wrapped ring is saved in physical order: same slots here
+
+
+class Prefetcher:
+    """Replay sampling and the host->device copy of the next batch, in a background thread while the
+    current update runs (--prefetch; on by default with CUDA, where the update no longer waits for
+    the host). One batch ahead: a batch cannot hold the newest `update_every` steps, and the sampling
+    RNG runs one batch ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
+
+    def __init__(self, buffer: ReplayBuffer, batch_size: int, rng: np.random.Generator, device: torch.device,
+                 margin: int):
+        self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
+        self.queue: queue.Queue = queue.Queue(maxsize=1)
+        self.stop = threading.Event()
+        self.thread = None
+        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+
+    def _produce(self):
+        while not self.stop.is_set():
+            batch = tuple(torch.as_tensor(x) for x in self.buffer.sample(self.batch_size, self.rng, self.margin))
+            event = None
+            if self.stream is not None:
+                with torch.cuda.stream(self.stream):
+                    batch = tuple(x.pin_memory().to(self.device, non_blocking=True) for x in batch)
+                    event = torch.cuda.Event()
+                    event.record(self.stream)
+            self.queue.put((batch, event))  # waits until the learner has taken the previous batch
+
+    def next(self):
+        if self.thread is None:  # started at the first update, once the buffer can be sampled
+            self.thread = threading.Thread(target=self._produce, daemon=True)
+            self.thread.start()
+        batch, event = self.queue.get()
+        if event is not None:  # the update's stream waits for the copy, and owns the tensors after it
+            current = torch.cuda.current_stream(self.device)
+            event.wait(current)
+            for x in batch:
+                x.record_stream(current)
+        return batch
+
+    def close(self):
+        self.stop.set()
+        while self.thread is not None and self.thread.is_alive():
+            try:  # unblock a producer waiting on a full queue
+                self.queue.get_nowait()
+            except queue.Empty:
+                pass
+            self.thread.join(timeout=0.05)
 
 
 # ================================================================================================
@@ -1099,6 +1154,11 @@ def train(cfg: Config, resume_state: dict | None = None):
         pixel_shape = train_env.observation_space["pixels"].shape
         buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
                               cfg.nstep, cfg.discount)
+        prefetcher = None
+        if cfg.prefetch == "on" or (cfg.prefetch == "auto" and device.type == "cuda"):
+            # The loop writes up to update_every steps while the thread samples: keep clear of them.
+            prefetcher = Prefetcher(buffer, cfg.batch_size, sample_rng, device,
+                                    margin=cfg.frame_stack + 2 * cfg.update_every)
         print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
               f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
               f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
@@ -1206,7 +1266,8 @@ def train(cfg: Config, resume_state: dict | None = None):
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
                     and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-                metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), step)
+                batch = prefetcher.next() if prefetcher else buffer.sample(cfg.batch_size, sample_rng)
+                metrics = agent.update(batch, step)
                 for k, v in metrics.items():
                     ep_metrics.setdefault(k, []).append(v)
 
@@ -1247,6 +1308,8 @@ def train(cfg: Config, resume_state: dict | None = None):
             run_evaluation()
         snapshot(mid_episode=not need_reset)
         progress.say(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
+        if prefetcher:
+            prefetcher.close()
         train_env.close()
         eval_env.close()
         if writer:

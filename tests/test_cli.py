@@ -301,3 +301,11 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     assert seen["act"] == list(range(first, last + 1))
     assert seen["update"] and seen["update"][0] >= first and seen["update"][-1] <= last
     assert all(s % cfg.update_every == 0 for s in seen["update"])
+
+
+def test_prefetch_on_cpu_trains(tmp_path):
+    """--prefetch on (CUDA's default) runs the same loop with the sampler in a background thread."""
+    r = run(["--env", "cup-catch", "--method", "sear", "--prefetch", "on", "--threads", "1", *TINY], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    train = rows(only_run_dir(tmp_path) / "train.csv")
+    assert train[-1]["critic_loss"] != "" and train[-1]["mask_loss"] != ""
