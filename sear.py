@@ -768,9 +768,11 @@ class ReplayBuffer:
         return self.t - max(0, self.t - self.capacity) > self.nstep + 1
 
     def sample(self, batch_size, rng: np.random.Generator, margin: int = 0):
-        """`margin` skips the oldest slots: a background sampler must not read a slot that the
-        training loop is overwriting while it samples."""
-        lo, hi = max(0, self.t - self.capacity) + margin, self.t - 1 - self.nstep
+        """`margin` skips the oldest slots of a full ring: a background sampler must not read a slot
+        that the training loop is overwriting while it samples."""
+        lo, hi = max(0, self.t - self.capacity), self.t - 1 - self.nstep
+        if self.t > self.capacity:
+            lo = min(lo + margin, hi)
         l = rng.integers(lo, hi + 1, size=batch_size)
         bad = self.first[(l + 1) % self.capacity]
         while bad.any():  # rejection keeps sampling uniform over valid starts without listing them
@@ -835,13 +837,17 @@ class Prefetcher:
 
     def _produce(self):
         while not self.stop.is_set():
-            batch = tuple(torch.as_tensor(x) for x in self.buffer.sample(self.batch_size, self.rng, self.margin))
-            event = None
-            if self.stream is not None:
-                with torch.cuda.stream(self.stream):
-                    batch = tuple(x.pin_memory().to(self.device, non_blocking=True) for x in batch)
-                    event = torch.cuda.Event()
-                    event.record(self.stream)
+            try:
+                batch = tuple(torch.as_tensor(x) for x in self.buffer.sample(self.batch_size, self.rng, self.margin))
+                event = None
+                if self.stream is not None:
+                    with torch.cuda.stream(self.stream):
+                        batch = tuple(x.pin_memory().to(self.device, non_blocking=True) for x in batch)
+                        event = torch.cuda.Event()
+                        event.record(self.stream)
+            except Exception as e:  # hand it to the learner, which raises it: never hang
+                self.queue.put((e, None))
+                return
             self.queue.put((batch, event))  # waits until the learner has taken the previous batch
 
     def next(self):
@@ -849,6 +855,8 @@ class Prefetcher:
             self.thread = threading.Thread(target=self._produce, daemon=True)
             self.thread.start()
         batch, event = self.queue.get()
+        if isinstance(batch, Exception):
+            raise batch
         if event is not None:  # the update's stream waits for the copy, and owns the tensors after it
             current = torch.cuda.current_stream(self.device)
             event.wait(current)
