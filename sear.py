@@ -1188,8 +1188,10 @@ def train(cfg: Config, resume_state: dict | None = None):
                 print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
             else:
                 buffer.load(buffer_path)
-            for name in ("train.csv", "eval.csv"):
-                set_aside_rows_after(os.path.join(run_dir, name), step * cfg.action_repeat)
+            set_aside_rows_after(os.path.join(run_dir, "train.csv"), step * cfg.action_repeat)
+            # A snapshot taken at an episode end precedes that frame's evaluation: the resumed run
+            # evaluates again from next_eval on, so rows from there go aside too.
+            set_aside_rows_after(os.path.join(run_dir, "eval.csv"), min(step * cfg.action_repeat, next_eval - 1))
             print(f"resumed at frame {step * cfg.action_repeat}, episode {episode}")
 
         train_log = CsvLog(os.path.join(run_dir, "train.csv"))
