@@ -35,15 +35,39 @@ import dataclasses
 import json
 import math
 import os
+import queue
 import random
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-import torch
-import torch.nn as nn
-import torch.nn.functional as F
+# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
+# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
+# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
+GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
+
+
+def reexec_with_huge_pages():
+    """On Linux/glibc, restart this process once with the GLIBC_MALLOC tunables above.
+    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) would otherwise be mapped
+    and unmapped by glibc at every update: with 4 KB pages ~1.8M page faults per SEAR update, and
+    still ~60k with huge pages alone (EXPERIMENTS.md, "Update speed"). glibc reads GLIBC_TUNABLES
+    only at start-up, hence the re-exec. Other platforms ignore the variable."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
+        return
+    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
+    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
+
+
+if __name__ == "__main__":  # before numpy and torch load: a re-exec costs a bare interpreter, not torch's import
+    reexec_with_huge_pages()
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import torch.nn as nn  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
 
 
 # ================================================================================================
@@ -64,6 +88,8 @@ class Config:
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
     precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
                                  "actor, critic and losses stay fp32")
+    prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
+                                "background thread while the current update runs")
     threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
                           "Several runs on one machine: give each cores / runs")
     run_root: str = arg("runs", "folder that holds run directories")
@@ -220,6 +246,8 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--precision must be fp32 or bf16, got '{cfg.precision}'")
     if not cfg.snapshot_minutes >= 0:
         raise ConfigError(f"--snapshot-minutes must be >= 0, got {cfg.snapshot_minutes}")
+    if cfg.prefetch not in ("auto", "on", "off"):
+        raise ConfigError(f"--prefetch must be auto, on or off, got '{cfg.prefetch}'")
     if cfg.threads < 0:
         raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
@@ -809,8 +837,12 @@ class ReplayBuffer:
     def can_sample(self):
         return self.t - max(0, self.t - self.capacity) > self.nstep + 1
 
-    def sample(self, batch_size, rng: np.random.Generator):
+    def sample(self, batch_size, rng: np.random.Generator, margin: int = 0):
+        """`margin` skips the oldest slots of a full ring: a background sampler must not read a slot
+        that the training loop is overwriting while it samples."""
         lo, hi = max(0, self.t - self.capacity), self.t - 1 - self.nstep
+        if self.t > self.capacity:
+            lo = min(lo + margin, hi)
         l = rng.integers(lo, hi + 1, size=batch_size)
         bad = self.first[(l + 1) % self.capacity]
         while bad.any():  # rejection keeps sampling uniform over valid starts without listing them
@@ -857,6 +889,59 @@ class ReplayBuffer:
             for name in ("frames", "masks", "actions", "rewards", "terminal", "first"):
                 getattr(self, name)[:n] = data[name]
             self.t = int(data["t"])  # a wrapped ring is saved in physical order: same slots here
+
+
+class Prefetcher:
+    """Replay sampling and the host->device copy of the next batch, in a background thread while the
+    current update runs (--prefetch; on by default with CUDA, where the update no longer waits for
+    the host). One batch ahead: a batch cannot hold the newest `update_every` steps, and the sampling
+    RNG runs one batch ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
+
+    def __init__(self, buffer: ReplayBuffer, batch_size: int, rng: np.random.Generator, device: torch.device,
+                 margin: int):
+        self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
+        self.queue: queue.Queue = queue.Queue(maxsize=1)
+        self.stop = threading.Event()
+        self.thread = None
+        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+
+    def _produce(self):
+        while not self.stop.is_set():
+            try:
+                batch = tuple(torch.as_tensor(x) for x in self.buffer.sample(self.batch_size, self.rng, self.margin))
+                event = None
+                if self.stream is not None:
+                    with torch.cuda.stream(self.stream):
+                        batch = tuple(x.pin_memory().to(self.device, non_blocking=True) for x in batch)
+                        event = torch.cuda.Event()
+                        event.record(self.stream)
+            except Exception as e:  # hand it to the learner, which raises it: never hang
+                self.queue.put((e, None))
+                return
+            self.queue.put((batch, event))  # waits until the learner has taken the previous batch
+
+    def next(self):
+        if self.thread is None:  # started at the first update, once the buffer can be sampled
+            self.thread = threading.Thread(target=self._produce, daemon=True)
+            self.thread.start()
+        batch, event = self.queue.get()
+        if isinstance(batch, Exception):
+            raise batch
+        if event is not None:  # the update's stream waits for the copy, and owns the tensors after it
+            current = torch.cuda.current_stream(self.device)
+            event.wait(current)
+            for x in batch:
+                x.record_stream(current)
+        return batch
+
+    def close(self):
+        self.stop.set()
+        while self.thread is not None and self.thread.is_alive():
+            try:  # unblock a producer waiting on a full queue
+                self.queue.get_nowait()
+            except queue.Empty:
+                pass
+            self.thread.join(timeout=0.05)
 
 
 # ================================================================================================
@@ -1192,6 +1277,11 @@ def train(cfg: Config, resume_state: dict | None = None):
         pixel_shape = train_env.observation_space["pixels"].shape
         buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
                               cfg.nstep, cfg.discount)
+        prefetcher = None
+        if cfg.prefetch == "on" or (cfg.prefetch == "auto" and device.type == "cuda"):
+            # The loop writes up to update_every steps while the thread samples: keep clear of them.
+            prefetcher = Prefetcher(buffer, cfg.batch_size, sample_rng, device,
+                                    margin=cfg.frame_stack + 2 * cfg.update_every)
         print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
               f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
               f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
@@ -1213,8 +1303,10 @@ def train(cfg: Config, resume_state: dict | None = None):
                 print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
             else:
                 buffer.load(buffer_path)
-            for name in ("train.csv", "eval.csv"):
-                set_aside_rows_after(os.path.join(run_dir, name), step * cfg.action_repeat)
+            set_aside_rows_after(os.path.join(run_dir, "train.csv"), step * cfg.action_repeat)
+            # A snapshot taken at an episode end precedes that frame's evaluation: the resumed run
+            # evaluates again from next_eval on, so rows from there go aside too.
+            set_aside_rows_after(os.path.join(run_dir, "eval.csv"), min(step * cfg.action_repeat, next_eval - 1))
             print(f"resumed at frame {step * cfg.action_repeat}, episode {episode}")
 
         train_log = CsvLog(os.path.join(run_dir, "train.csv"))
@@ -1302,7 +1394,8 @@ def train(cfg: Config, resume_state: dict | None = None):
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
                     and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-                metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), step)
+                batch = prefetcher.next() if prefetcher else buffer.sample(cfg.batch_size, sample_rng)
+                metrics = agent.update(batch, step)
                 for k, v in metrics.items():
                     ep_metrics.setdefault(k, []).append(v)
 
@@ -1345,6 +1438,8 @@ def train(cfg: Config, resume_state: dict | None = None):
             run_evaluation()
         snapshot(mid_episode=not need_reset)
         progress.say(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
+        if prefetcher:
+            prefetcher.close()
         train_env.close()
         eval_env.close()
         if writer:
@@ -1364,25 +1459,6 @@ def train(cfg: Config, resume_state: dict | None = None):
 # ================================================================================================
 # 9. CLI
 # ================================================================================================
-# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
-# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
-# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
-GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
-
-
-def reexec_with_huge_pages():
-    """On Linux/glibc, restart this process once with transparent huge pages for malloc'd blocks.
-    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) are mapped and unmapped
-    by glibc at every update; with 4 KB pages that is ~1.8M page faults per SEAR update, and
-    huge pages cut the update time by about a third (EXPERIMENTS.md, "Update speed"). glibc reads
-    GLIBC_TUNABLES only at start-up, hence the re-exec. Other platforms ignore the variable."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
-        return
-    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
-    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
-
-
 class OneLineParser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -1479,5 +1555,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    reexec_with_huge_pages()
     sys.exit(main())
