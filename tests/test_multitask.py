@@ -212,6 +212,16 @@ def test_mt3_smoke_run_evaluates_every_task(mt3_run):
     assert config["std_steps"] == 2_000_000 and config["latent_dim"] == 64   # explicit flags win
 
 
+def test_plot_per_task_draws_one_panel_per_task(mt3_run, tmp_path, capsys):
+    import plot
+    run_dir, _ = mt3_run
+    assert plot.main([str(run_dir), "--per-task", "--metric", "success", "--out", str(tmp_path / "t.png")]) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| metaworld-mt3")]
+    assert [line.split(" | ")[0] for line in table] == [f"| metaworld-mt3: {t}" for t in envs.metaworld_set_tasks("mt3")]
+    assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+    assert plot.main([str(run_dir), "--per-task", "--csv", "train", "--out", str(tmp_path / "u.png")]) == 2
+
+
 def test_finetune_starts_from_the_source_networks(mt3_run, tmp_path):
     source_dir, _ = mt3_run
     args = ["--run-root", str(tmp_path / "runs"), "--env", "metaworld-peg-insert-side", "--init-from",
