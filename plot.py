@@ -3,6 +3,7 @@
 Usage:  python plot.py runs/ --out curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out mt10.png
 
 Arguments are run directories (holding config.json), parent folders (every folder below holding a
 config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"); each
@@ -15,6 +16,9 @@ Aligning runs of one group:
              evaluation of every run (a run still in progress truncates its group).
   train.csv  episodes end at different frames in each run, so the curves are linearly
              INTERPOLATED onto the union of their frames, cut to the span all runs cover.
+
+--per-task draws task-set runs (metaworld-mt3/-mt10/-mt50) one panel per task, from eval.csv's
+per-task columns (success/<task>, return/<task>).
 
 A markdown table (group, runs, last common frame, final mean +- CI) goes to stdout. A run without
 the CSV (stopped before its first evaluation, or episode, ended) is skipped with one line on stderr.
@@ -96,6 +100,26 @@ def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> di
     frames = np.array(sorted(points))
     return {"dir": run_dir, "config": config, "frames": frames,
             "values": np.array([points[x] for x in frames])}
+
+
+def task_columns(run_dir: str, metric: str) -> list[str]:
+    """The tasks of a task-set run, from its eval.csv's <metric>/<task> columns (in their order)."""
+    path = os.path.join(run_dir, "eval.csv")
+    if not os.path.exists(path):
+        raise NoLogYet(f"no eval.csv (the run stopped before {FIRST_ROW['eval']} ended)")
+    with open(path, newline="") as f:
+        header = next(csv.reader(f), [])
+    tasks = [c[len(metric) + 1:] for c in header if c.startswith(metric + "/")]
+    if not tasks:
+        raise PlotError(f"{path}: no per-task columns ({metric}/<task>); --per-task needs task-set runs "
+                        f"(metaworld-mt3, -mt10, -mt50)")
+    return tasks
+
+
+def load_task_runs(run_dir: str, metric: str) -> list[dict]:
+    """One load_run per task of a task-set run, each marked with its task."""
+    return [{**load_run(run_dir, "eval", f"{metric}/{task}"), "task": task}
+            for task in task_columns(run_dir, metric)]
 
 
 # ---------------------------------------------------------------- statistics
@@ -201,6 +225,8 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
     parser.add_argument("--group", default="method", help="config keys, comma separated: method,env")
     parser.add_argument("--title", default=None)
+    parser.add_argument("--per-task", action="store_true",
+                        help="task sets: one panel per task, from eval.csv's <metric>/<task> columns")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = parser.parse_args(argv)
     try:
@@ -211,21 +237,27 @@ def main(argv=None) -> int:
         keys = [k.strip() for k in args.group.split(",") if k.strip()]
         if not keys:
             raise PlotError("--group needs at least one config key, e.g. method")
+        if args.per_task and args.csv != "eval":
+            raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
         runs = []
         found = find_runs(args.paths)
         for d in found:
             try:
-                runs.append(load_run(d, args.csv, args.metric))
+                runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
             except NoLogYet as e:  # one run stopped early must not hide all the others
                 print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
         if not runs:
             raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
         envs = sorted({env_of(r) for r in runs})
-        # One subplot per env, unless env is already told apart by the lines (or there is just one).
+        # One subplot per env, unless env is already told apart by the lines (or there is just one);
+        # with --per-task one per task (and env).
         by_env = len(envs) > 1 and "env" not in keys
+        keyed = {}
+        for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
+            key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
+            keyed.setdefault(key or ", ".join(envs), []).append(r)
         panels = {}
-        for panel in (envs if by_env else [", ".join(envs)]):
-            members = [r for r in runs if not by_env or env_of(r) == panel]
+        for panel, members in keyed.items():
             panels[panel] = {}
             for label, group in group_runs(members, keys).items():
                 seeds = [r["config"].get("seed") for r in group]
@@ -233,6 +265,8 @@ def main(argv=None) -> int:
                     print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
                 curves = [(r["frames"], r["values"]) for r in group]
                 envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
+                if "task" in group[0]:  # --per-task: the table names the task too
+                    envs_of_group += f": {group[0]['task']}"
                 panels[panel][label] = (*aggregate(curves, interpolate=args.csv == "train"),
                                         len(group), envs_of_group)
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"

@@ -23,6 +23,8 @@ Sections, in reading order:
 
 Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
         python sear.py --resume runs/<run dir>
+        python sear.py --env metaworld-mt10                                # multi-task, per-task evaluation
+        python sear.py --env metaworld-hammer --init-from runs/<mt10 run>  # transfer
 """
 from __future__ import annotations
 
@@ -95,6 +97,11 @@ class Config:
     recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code "
                                "where the two differ: RECIPES below, README's table); explicit flags win")
     save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
+    init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
+                             "metaworld-mt10); method and network sizes follow that run unless given")
+    init_parts: str = arg("encoder+decoders", "with --init-from, what to copy: encoder | encoder+decoders (the "
+                                              "method's auxiliary networks too; the authors' fine-tuning) | all "
+                                              "(also actor and critic); the rest and the optimisers start fresh")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
@@ -107,6 +114,7 @@ class Config:
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)")
     camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
     color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
+    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)")
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
     seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
@@ -125,7 +133,9 @@ class Config:
     std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action repeat)")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
     eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
-    eval_episodes: int = arg(10, "episodes per evaluation, mean action")
+    eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
+    eval_episodes_per_task: int = arg(0, "task sets (metaworld-mt*): evaluation episodes of every task; "
+                                         "0 = ceil(--eval-episodes / number of tasks)")
     # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same 4:1 ratio) ---
     recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (mae too; ae uses 2 x c1, as the authors)")
     mask_coef: float = arg(0.0025, "c2: weight of the mask loss")
@@ -151,6 +161,11 @@ def _manipulation(cfg):
     return cfg.env.split("-")[0] in ("metaworld", "kitchen", "adroit")
 
 
+def _multitask(cfg):
+    import envs  # imported late so --help needs no MuJoCo
+    return envs.is_task_set(cfg.env)
+
+
 def _authors_discount(cfg):
     import envs  # the suite's default action repeat; imported late so --help needs no MuJoCo
     return round(0.99 ** (1 + (cfg.action_repeat or envs.default_action_repeat(cfg.env))), 6)
@@ -169,18 +184,31 @@ RECIPES = {"authors": (
     ("discount", _manipulation, _authors_discount,
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
+    # The paper's multi-task latent is 512 (MULTITASK below); the authors' code keeps 4096 there too.
+    ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
 )}
 
 
+# The paper's multi-task settings (its hyper-parameter table), applied under both recipes before the
+# recipe's own rows: the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x
+# longer exploration schedule. The authors' code keeps latent 4096 there (its row in RECIPES).
+MULTITASK = (
+    ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
+    ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
+                                         "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
+)
+
+
 def apply_recipe(cfg, explicit: set) -> list[str]:
-    """Set the recipe's values on `cfg`, except fields the user gave explicitly. Returns what changed."""
-    changed = []
-    for name, applies, value, source in RECIPES.get(cfg.recipe, ()):
+    """Set the multi-task rows, then the recipe's values on `cfg`, except fields the user gave
+    explicitly. Returns what changed."""
+    changed = {}  # a recipe row may override a multi-task row: report the value that stands
+    for name, applies, value, source in (*MULTITASK, *RECIPES.get(cfg.recipe, ())):
         if name in explicit or not applies(cfg):
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)
-        changed.append(f"{name}={getattr(cfg, name)} ({source})")
-    return changed
+        changed[name] = f"{name}={getattr(cfg, name)} ({source})"
+    return list(changed.values())
 
 
 class ConfigError(ValueError):
@@ -224,6 +252,12 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
         raise ConfigError(f"--render-quality must be paper or fast, got '{cfg.render_quality}'")
+    if cfg.kitchen_camera not in ("fixed", "random"):
+        raise ConfigError(f"--kitchen-camera must be fixed or random, got '{cfg.kitchen_camera}'")
+    if cfg.eval_episodes_per_task < 0:
+        raise ConfigError(f"--eval-episodes-per-task must be >= 0, got {cfg.eval_episodes_per_task}")
+    if cfg.init_parts not in INIT_PARTS:
+        raise ConfigError(f"--init-parts must be {' or '.join(INIT_PARTS)}, got '{cfg.init_parts}'")
 
 
 # ================================================================================================
@@ -694,6 +728,42 @@ class Agent:
             self.aux.load_state_dict(state["aux"])
 
 
+# Transfer (--init-from): which networks of another run's agent a new run starts from.
+INIT_PARTS = {"encoder": ("encoder",), "encoder+decoders": ("encoder", "aux"),
+              "all": ("encoder", "aux", "actor", "critic")}
+
+
+def init_fields(cfg) -> tuple[str, ...]:
+    """The config fields that fix the shapes of the parts --init-parts copies: they must be the
+    source run's."""
+    fields = ("method", "latent_dim", "frame_stack")
+    if cfg.init_parts != "encoder" and cfg.method == "curl":
+        fields += ("curl_dim",)  # CURL's projection heads are its auxiliary networks
+    if cfg.init_parts == "all":
+        fields += ("feature_dim", "hidden_dim")
+    return fields
+
+
+def copy_parts(agent: Agent, source: dict, parts: str) -> None:
+    """Load `parts` of a saved agent state (a snapshot's "agent") into a freshly built agent; the other
+    networks keep their fresh initialisation and the optimisers stay fresh (Adam's moments are
+    empty; the loads write into the parameters the optimisers already hold). "aux" is the method's
+    auxiliary networks: SEAR's two decoders, AE's and MAE's decoder, CURL's heads and key encoder;
+    drq and rgbm have none. As in the authors' load_pretrained_weights, the target critic starts as
+    a copy of the loaded critic."""
+    names = INIT_PARTS[parts]
+    agent.encoder.load_state_dict(source["encoder"])
+    if agent.aux is not None:
+        if "aux" in names:
+            agent.aux.load_state_dict(source["aux"])
+        elif isinstance(agent.aux, CURLAux):  # its key encoder is a momentum copy: it starts equal
+            agent.aux.key_encoder.load_state_dict(source["encoder"])
+    if "actor" in names:
+        agent.actor.load_state_dict(source["actor"])
+        agent.critic.load_state_dict(source["critic"])
+        agent.critic_target.load_state_dict(agent.critic.state_dict())
+
+
 # ================================================================================================
 # 6. Replay buffer
 # ================================================================================================
@@ -959,18 +1029,33 @@ def first_sentence(text) -> str:
     return sentence if not sentence or sentence.endswith((".", "!", "?")) else sentence + "."
 
 
-def load_snapshot(run_dir):
+def load_snapshot(run_dir, flag="--resume", mmap=False):
+    """A run's snapshot.pt; every problem is a ConfigError naming `flag`. mmap=True maps the tensors
+    instead of reading them (--init-from reads a snapshot twice: its config, then its weights)."""
     path = os.path.join(run_dir, "snapshot.pt")
     if not os.path.isdir(run_dir):
-        raise ConfigError(f"--resume: no such run directory '{run_dir}'")
+        raise ConfigError(f"{flag}: no such run directory '{run_dir}'")
     if not os.path.exists(path):
-        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (the run stopped before its first "
+        raise ConfigError(f"{flag}: '{run_dir}' has no snapshot.pt (the run stopped before its first "
                           f"snapshot; see --snapshot-minutes)")
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as e:  # corrupt or foreign file: say so in one line
         reason = first_sentence(e)
-        raise ConfigError(f"--resume: cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+        raise ConfigError(f"{flag}: cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+
+
+def load_init_source(cfg, action_dim):
+    """The agent state of the --init-from run, checked against this run (its config was checked by
+    parse_args; the action size is known once the env is built). Called before the run dir exists."""
+    state = load_snapshot(cfg.init_from, "--init-from", mmap=True)
+    if cfg.init_parts == "all":
+        # The actor's last layer maps to the actions: its output size is the source's action size.
+        source_dim = [v for k, v in state["agent"]["actor"].items() if k.endswith(".weight")][-1].shape[0]
+        if source_dim != action_dim:
+            raise ConfigError(f"--init-parts all: the source run's actor has {source_dim} actions, {cfg.env} "
+                              f"has {action_dim}; copy encoder or encoder+decoders instead")
+    return state["agent"]
 
 
 def saved_buffer_t(path):
@@ -1073,7 +1158,8 @@ def make_envs(cfg: Config):
                   mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
                   difficulty=cfg.difficulty, render_quality=cfg.render_quality,
                   mask_downsample=cfg.mask_downsample, camera_distraction=cfg.camera_distraction,
-                  color_distraction=cfg.color_distraction, render_mask=METHODS[cfg.method].uses_mask)
+                  color_distraction=cfg.color_distraction, render_mask=METHODS[cfg.method].uses_mask,
+                  kitchen_camera=cfg.kitchen_camera)
     try:
         # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
         # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
@@ -1089,12 +1175,35 @@ def make_envs(cfg: Config):
     return train_env, eval_env
 
 
-def evaluate(agent, env, cfg: Config, frame, on_step=None):
+def eval_tasks(env, cfg: Config) -> list:
+    """The task of every evaluation episode: None (the env's own draw) --eval-episodes times, or for a
+    task set k episodes of each task, task after task (k = --eval-episodes-per-task, by default
+    ceil(--eval-episodes / tasks): at least --eval-episodes in all). The authors evaluate task sets
+    on 10 episodes of random tasks; per-task numbers need every task."""
+    tasks = getattr(env.unwrapped, "tasks", None)
+    if not tasks:
+        return [None] * cfg.eval_episodes
+    k = cfg.eval_episodes_per_task or math.ceil(cfg.eval_episodes / len(tasks))
+    return [task for task in tasks for _ in range(k)]
+
+
+def per_task_columns(per_task: dict) -> dict:
+    """eval.csv's per-task columns: mean return and success rate of each task's episodes."""
+    row = {}
+    for task, episodes in per_task.items():
+        row[f"return/{task}"] = float(np.mean([ret for ret, _ in episodes]))
+        row[f"success/{task}"] = float(np.mean([success for _, success in episodes]))
+    return row
+
+
+def evaluate(agent, env, cfg: Config, frame, on_step=None, per_task=None):
     """Mean action, separately seeded env; the same reset seeds at every eval make evals comparable.
-    on_step(episode, step), if given, is called after every step (the progress line)."""
+    on_step(episode, step), if given, is called after every step (the progress line). A task set
+    runs every task (eval_tasks); per_task, if given, collects {task: [(return, success), ...]}."""
     returns, successes = [], []
-    for i in range(cfg.eval_episodes):
-        obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i))
+    for i, task in enumerate(eval_tasks(env, cfg)):
+        obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i),
+                              options=None if task is None else {"task": task})
         done, ret, success, t = False, 0.0, False, 0
         while not done:
             action = agent.act(obs["pixels"], obs["mask"], frame // cfg.action_repeat, eval_mode=True)
@@ -1108,6 +1217,8 @@ def evaluate(agent, env, cfg: Config, frame, on_step=None):
         returns.append(ret)
         if "success" in info:
             successes.append(float(success))
+        if per_task is not None and task is not None:
+            per_task.setdefault(task, []).append((ret, float(success)))
     return float(np.mean(returns)), (float(np.mean(successes)) if successes else None)
 
 
@@ -1147,6 +1258,8 @@ def train(cfg: Config, resume_state: dict | None = None):
         device = pick_device(cfg.device)
         torch.set_num_threads(cfg.threads or default_threads())
         train_env, eval_env = make_envs(cfg)  # also resolves action_repeat 0 to the suite's default
+        init_source = (load_init_source(cfg, train_env.action_space.shape[0])
+                       if cfg.init_from and resume_state is None else None)
         if not cfg.resume:
             run_dir = new_run_dir(cfg)
             with open(os.path.join(run_dir, "config.json"), "w") as f:
@@ -1159,6 +1272,8 @@ def train(cfg: Config, resume_state: dict | None = None):
 
         action_dim = train_env.action_space.shape[0]
         agent = Agent(cfg, action_dim, device)
+        if init_source is not None:  # transfer: a new run from another run's networks
+            copy_parts(agent, init_source, cfg.init_parts)
         pixel_shape = train_env.observation_space["pixels"].shape
         buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
                               cfg.nstep, cfg.discount)
@@ -1222,20 +1337,23 @@ def train(cfg: Config, resume_state: dict | None = None):
 
         def run_evaluation():
             nonlocal next_eval, last_eval_frame
-            progress.say(f"evaluating at frame {frame} ({cfg.eval_episodes} episodes)")
+            episodes = len(eval_tasks(eval_env, cfg))
+            progress.say(f"evaluating at frame {frame} ({episodes} episodes)")
             began = time.time()
 
             def show(i, t):
-                done = i / cfg.eval_episodes
-                progress.update(frame, f"eval {i + 1}/{cfg.eval_episodes} step {t}",
+                done = i / episodes
+                progress.update(frame, f"eval {i + 1}/{episodes} step {t}",
                                 progress.eta(frame, next_eval, done, time.time() - began))
 
-            eval_return, eval_success = evaluate(agent, eval_env, cfg, frame, on_step=show)
+            per_task = {}
+            eval_return, eval_success = evaluate(agent, eval_env, cfg, frame, on_step=show, per_task=per_task)
             progress.eval_seconds.append(time.time() - began)
             row = {"frame": frame, "step": step, "episode": episode, "return": eval_return,
                    "wall_time": round(time.time() - start, 2)}
             if eval_success is not None:
                 row["success"] = eval_success
+            row.update(per_task_columns(per_task))
             eval_log.write(row)
             if writer:
                 writer.add_scalar("eval/return", eval_return, frame)
@@ -1294,6 +1412,8 @@ def train(cfg: Config, resume_state: dict | None = None):
                 row = {"frame": frame, "step": step, "episode": episode, "return": ep_return, "length": ep_len}
                 if "success" in info:
                     row["success"] = float(ep_success)
+                if "task" in info:  # task sets: which task the episode drew
+                    row["task"] = info["task"]
                 row.update({k: (float(np.mean(ep_metrics[k])) if k in ep_metrics else "")
                             for k in agent.metric_names})
                 row.update({"fps": round(progress.fps, 2), "wall_time": round(time.time() - start, 2)})
@@ -1347,6 +1467,32 @@ class OneLineParser(argparse.ArgumentParser):
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes"}
 
 
+def inherit_from_source(cfg, explicit: set) -> set:
+    """--init-from: the fields that fix the shapes of the copied networks (init_fields) come from the
+    source run's config; given explicitly, they must equal it. Returns the fields taken."""
+    state = load_snapshot(cfg.init_from, "--init-from", mmap=True)
+    source, defaults = state["config"], Config()
+    cfg.init_from = os.path.abspath(cfg.init_from)  # config.json names the source from anywhere
+    taken = set()
+    if "method" not in explicit:  # first: which fields matter depends on the method
+        cfg.method = source["method"]
+        taken.add("method")
+    for name in init_fields(cfg):
+        value = source.get(name, getattr(defaults, name))
+        if name in explicit and getattr(cfg, name) != value:
+            flag = "--" + name.replace("_", "-")
+            raise ConfigError(f"--init-from: the source run has {flag} {value} but this run {getattr(cfg, name)}; "
+                              f"--init-parts {cfg.init_parts} copies networks of that size (leave {flag} out "
+                              f"to take the source's)")
+        if name not in explicit:
+            setattr(cfg, name, value)
+            taken.add(name)
+    frame = state["counters"]["step"] * source.get("action_repeat", 1)
+    print(f"init-from {cfg.init_from} ({source['env']}, frame {frame}): copies {cfg.init_parts}; "
+          + ", ".join(f"{k}={getattr(cfg, k)}" for k in init_fields(cfg)) + " as the source run")
+    return taken
+
+
 def parse_args(argv=None) -> tuple[Config, dict | None]:
     """The config from the flags; with --resume, the run's saved config (plus the few flags that may
     change) and its snapshot."""
@@ -1381,7 +1527,12 @@ def parse_args(argv=None) -> tuple[Config, dict | None]:
     else:
         cfg = Config(**given)
         validate(cfg)
-        changed = apply_recipe(cfg, set(given))
+        explicit = set(given)
+        if "init_parts" in given and not cfg.init_from:
+            raise ConfigError("--init-parts needs --init-from (the run to copy from)")
+        if cfg.init_from:  # the source run fixes the copied networks' sizes; the recipe may not change them
+            explicit |= inherit_from_source(cfg, explicit)
+        changed = apply_recipe(cfg, explicit)
         if changed:
             print(f"recipe {cfg.recipe}: " + "; ".join(changed))
     return cfg, state
