@@ -168,7 +168,7 @@ def short_frames(x, _pos=None) -> str:
     return f"{x / 1e6:g}M" if abs(x) >= 1e6 else f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
 
 
-def plot(panels: dict, out: str, ylabel: str, title: str):
+def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None):
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
@@ -184,6 +184,8 @@ def plot(panels: dict, out: str, ylabel: str, title: str):
             ax.plot(frames, mean, color=colors[label], label=f"{label} (n={n})")
             if n > 1:
                 ax.fill_between(frames, mean - ci, mean + ci, color=colors[label], alpha=0.2, lw=0)
+        if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
+            ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
         ax.set_title(panel if len(panels) > 1 else title)
         ax.set_xlabel("frames")
         ax.set_ylabel(ylabel)
@@ -227,9 +229,18 @@ def main(argv=None) -> int:
     parser.add_argument("--title", default=None)
     parser.add_argument("--per-task", action="store_true",
                         help="task sets: one panel per task, from eval.csv's <metric>/<task> columns")
+    parser.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
+                        help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = parser.parse_args(argv)
     try:
+        baseline = None
+        if args.baseline is not None:
+            value, _, label = args.baseline.partition(":")
+            try:
+                baseline = (float(value), label or "baseline")
+            except ValueError:
+                raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
         if args.metric not in METRICS:
             raise PlotError(f"unknown metric {args.metric!r} (choose from {', '.join(METRICS)})")
         if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
@@ -271,7 +282,7 @@ def main(argv=None) -> int:
                                         len(group), envs_of_group)
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        plot(panels, args.out, ylabel, title)
+        plot(panels, args.out, ylabel, title, baseline)
     except PlotError as e:
         print(f"plot.py: error: {e}", file=sys.stderr)
         return 2
