@@ -17,6 +17,10 @@ This module gives every suite used in the paper one Gymnasium-style interface:
   A solved Kitchen task also ends as a truncation (the authors bootstrap there).
 * ``info["success"]`` exists for the suites that define success (Meta-World,
   Kitchen, Adroit).
+* Task sets (``metaworld-mt3``, ``-mt10``, ``-mt50``) draw a task uniformly and
+  one of its variations at every reset, from the reset seed; the agent sees
+  pixels only, ``info["task"]`` names the task (reset and every step),
+  ``env.tasks`` lists them and ``reset(options={"task": name})`` picks one.
 * ``make_env(seed=s)`` plus ``reset(seed=s)`` reproduces an episode, including
   random backgrounds, Meta-World task variations and mask noise.
 
@@ -65,7 +69,7 @@ from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
 __all__ = [
-    "EnvError", "env_names", "default_action_repeat", "make_env", "SEAREnv",
+    "EnvError", "env_names", "default_action_repeat", "is_task_set", "metaworld_set_tasks", "make_env", "SEAREnv",
     "robot_geoms", "robot_pixels", "downsample_mask", "procedural_background",
 ]
 
@@ -95,7 +99,20 @@ _DMC_ROBOT_ROOTS = {
     "acrobot": "upper_arm", "pendulum": "pole", "fish": "torso",
 }
 
-_KITCHEN_TASKS = {"kettle": "kettle", "light": "light switch", "slider": "slide cabinet"}
+# Kitchen env name -> FrankaKitchen sub-tasks to complete in one episode.  "multitask" is D4RL's
+# kitchen-mixed-v0 (microwave, kettle, bottom burner, light switch), as in the authors' code.
+_KITCHEN_TASKS = {"kettle": ("kettle",), "light": ("light switch",), "slider": ("slide cabinet",),
+                  "multitask": ("microwave", "kettle", "bottom burner", "light switch")}
+# The authors' kitchen camera (kitchen_dm_env.py): a free camera looking at (-0.3, 0.5, 2.0) from
+# 1.86 m.  "fixed" is azimuth 90, elevation -60; "random" draws one of these six per episode.
+_KITCHEN_CAMERA_LOOKAT, _KITCHEN_CAMERA_DISTANCE = (-0.3, 0.5, 2.0), 1.86
+_KITCHEN_CAMERA_FIXED = (90.0, -60.0)
+_KITCHEN_CAMERAS = tuple((az, el) for az in (70.0, 90.0, 110.0) for el in (-60.0, -30.0))
+# Meta-World task sets (metaworld-<set>).  MT10 and MT50 are Meta-World's own benchmarks (their
+# train classes, in their order); MT3 is the authors' MT3-customized set
+# (sear/environments/metaworld_custom_envs.py).
+_METAWORLD_SETS = ("mt3", "mt10", "mt50")
+_MT3_TASKS = ("button-press-topdown-wall", "door-open", "hammer")
 _ADROIT_TASKS = {"door": "AdroitHandDoor-v1", "hammer": "AdroitHandHammer-v1",
                  "pen": "AdroitHandPen-v1", "relocate": "AdroitHandRelocate-v1"}
 
@@ -145,6 +162,15 @@ def _metaworld_tasks() -> tuple[str, ...]:
     return tuple(name[: -len("-v3")] for name in ALL_V3_ENVIRONMENTS)
 
 
+def metaworld_set_tasks(set_name: str) -> tuple[str, ...]:
+    """The task names of a Meta-World task set ("mt3", "mt10", "mt50"), without "-v3"."""
+    if set_name == "mt3":
+        return _MT3_TASKS
+    from metaworld import env_dict   # MT10(seed).train_classes is env_dict.MT10_V3, and so on
+    classes = env_dict.MT10_V3 if set_name == "mt10" else env_dict.MT50_V3
+    return tuple(name[: -len("-v3")] for name in classes)
+
+
 def _dmc_name(domain: str, task: str) -> str:
     inverse = {v: k for k, v in _DMC_ALIASES.items()}
     return f"{inverse.get(domain, domain)}-{task}"
@@ -160,6 +186,7 @@ def env_names() -> list[str]:
     names += [n for n in (_dmc_name(d, t) for d, t in _dmc_tasks()) if n not in names]
     names += ["walker-walk-distracting", "cup-catch-distracting"]
     names += [f"metaworld-{t}" for t in _metaworld_tasks()]
+    names += [f"metaworld-{s}" for s in _METAWORLD_SETS]
     names += [f"kitchen-{t}" for t in _KITCHEN_TASKS]
     names += [f"adroit-{t}" for t in _ADROIT_TASKS]
     return names
@@ -170,6 +197,7 @@ def _valid_names_line() -> str:
     return ("walker-walk, cup-catch, any dm_control <domain>-<task> (e.g. cheetah-run), "
             "<domain>-<task>-distracting (e.g. walker-walk-distracting), "
             f"metaworld-<task> ({len(mw)} MT1 tasks, e.g. {', '.join(mw[:3])}), "
+            f"metaworld-{{{','.join(_METAWORLD_SETS)}}} (task sets), "
             f"kitchen-{{{','.join(_KITCHEN_TASKS)}}}, adroit-{{{','.join(_ADROIT_TASKS)}}}")
 
 
@@ -177,7 +205,7 @@ def _parse_name(name: str) -> tuple[str, tuple]:
     """Map an env name to (suite, args); raise EnvError for unknown names."""
     if not isinstance(name, str):
         raise EnvError(f"env name must be a string, got {name!r}")
-    if name.startswith("metaworld-") and name[len("metaworld-"):] in _metaworld_tasks():
+    if name.startswith("metaworld-") and name[len("metaworld-"):] in (*_metaworld_tasks(), *_METAWORLD_SETS):
         return "metaworld", (name[len("metaworld-"):],)
     if name.startswith("kitchen-") and name[len("kitchen-"):] in _KITCHEN_TASKS:
         return "kitchen", (name[len("kitchen-"):],)
@@ -189,6 +217,12 @@ def _parse_name(name: str) -> tuple[str, tuple]:
         if base == _dmc_name(domain, task) or base == f"{domain}-{task}":
             return ("distracting" if distracting else "dmc"), (domain, task)
     raise EnvError(f"unknown env {name!r}; valid: {_valid_names_line()}")
+
+
+def is_task_set(name: str) -> bool:
+    """True for the multi-task Meta-World sets (metaworld-mt3, -mt10, -mt50): every episode draws
+    one of several tasks, and the env lists them in ``env.tasks``."""
+    return name.startswith("metaworld-") and name[len("metaworld-"):] in _METAWORLD_SETS
 
 
 def default_action_repeat(name: str) -> int:
@@ -560,22 +594,28 @@ class _GymBackend:
     opening = True
     has_success = True
 
-    def __init__(self, suite: str, task: str, seed: int):
+    def __init__(self, suite: str, task: str, seed: int, kitchen_camera: str = "fixed"):
         # ``seed`` is unused here: these envs draw everything random at reset,
         # which SEAREnv seeds from its own generator.
         import gymnasium_robotics
         gym.register_envs(gymnasium_robotics)
+        self.kitchen_camera = kitchen_camera
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             if suite == "kitchen":
-                self.env = gym.make("FrankaKitchen-v1", tasks_to_complete=[_KITCHEN_TASKS[task]],
+                # FrankaKitchen's reward is the number of sub-tasks completed at this step (each
+                # counts once: a completed one leaves tasks_to_complete), so an episode's return
+                # is the number of sub-tasks solved, as D4RL's kitchen-mixed.
+                self.env = gym.make("FrankaKitchen-v1", tasks_to_complete=list(_KITCHEN_TASKS[task]),
                                     max_episode_steps=280, disable_env_checker=True)
                 self.robot_root = "panda0_link0"
-                # The SEAR authors' kitchen camera (a free camera).
+                # A free camera: RGB and segmentation both render through this one object, so
+                # the mask follows it when reset() moves it.
                 cam = mujoco.MjvCamera()
                 cam.type = mujoco.mjtCamera.mjCAMERA_FREE
-                cam.lookat[:] = (-0.3, 0.5, 2.0)
-                cam.distance, cam.azimuth, cam.elevation = 1.86, 90.0, -60.0
+                cam.lookat[:] = _KITCHEN_CAMERA_LOOKAT
+                cam.distance = _KITCHEN_CAMERA_DISTANCE
+                cam.azimuth, cam.elevation = _KITCHEN_CAMERA_FIXED
                 self.camera = cam
             else:
                 self.env = gym.make(_ADROIT_TASKS[task], disable_env_checker=True)
@@ -587,6 +627,9 @@ class _GymBackend:
         self.action_dim = int(self.env.action_space.shape[0])
 
     def reset(self, seed: int) -> None:
+        if self.kitchen_camera == "random":   # one of the authors' six views per episode
+            view = np.random.default_rng(seed).integers(len(_KITCHEN_CAMERAS))
+            self.camera.azimuth, self.camera.elevation = _KITCHEN_CAMERAS[view]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.env.reset(seed=seed)
@@ -612,15 +655,41 @@ class _GymBackend:
         self.env.close()
 
 
-class _MetaWorldBackend:
-    """Meta-World v3 MT1 task: a new task variation at every reset.
+@functools.lru_cache(maxsize=8)
+def _metaworld_variations(name: str, variation_seed: int) -> dict:
+    """{task: its 50 variations (metaworld.Task: object and goal placements)} of a Meta-World task
+    or task set, drawn from the variation seed as the authors' code does: MT10 and MT50 are
+    Meta-World's benchmarks; one task and MT3 use one MT1 benchmark per task (so metaworld-mt3
+    sees exactly the placements of metaworld-door-open with the same seed).  Cached: the train
+    and the eval env of a run share one draw (building MT50 takes about 25 s)."""
+    import metaworld
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # Every benchmark draws from np.random seeded with the variation seed and restores the
+        # global state afterwards.
+        if name in ("mt10", "mt50"):
+            benchmark = (metaworld.MT10 if name == "mt10" else metaworld.MT50)(seed=variation_seed)
+            by_task = collections.defaultdict(list)
+            for t in benchmark.train_tasks:
+                by_task[t.env_name[: -len("-v3")]].append(t)
+            return dict(by_task)
+        tasks = metaworld_set_tasks(name) if name in _METAWORLD_SETS else (name,)
+        return {t: metaworld.MT1(f"{t}-v3", seed=variation_seed).train_tasks for t in tasks}
 
-    As in the authors' code, the MT1 benchmark is built once from a
-    *variation seed* and every reset samples one of its 50 train variations
-    (object and goal placements) and ``set_task``s it.  Giving the train and
-    the eval env the same variation seed (``make_env(variation_seed=)``) makes
-    evaluation draw from the same 50 placements as training; which variation
-    an episode gets follows from the reset seed.  Episodes: 500 env steps.
+
+class _MetaWorldBackend:
+    """Meta-World v3: one task (MT1) or a task set (MT3, MT10, MT50); a new variation every reset.
+
+    As in the authors' code, the variations are drawn once from a *variation seed* (50 per task,
+    ``_metaworld_variations``) and every reset samples a task uniformly (task sets only), then
+    one of its 50 variations, and ``set_task``s it; both draws follow from the reset seed.
+    ``reset(seed, task=name)`` picks the task instead (per-task evaluation).  Giving the train
+    and the eval env the same variation seed (``make_env(variation_seed=)``) makes evaluation
+    draw from the same placements as training.  Episodes: 500 env steps.
+
+    Each task's env is built on its first episode and kept (about 20 MB each, 1 GB for MT50);
+    ``model`` / ``data`` are the current task's, and SEAREnv re-binds its renderers when they
+    change (one renderer pair per SEAREnv, not one per task: a pair holds 0.1-0.3 GB).
     """
 
     flip = True        # v3's 'corner' camera renders upside down
@@ -628,26 +697,50 @@ class _MetaWorldBackend:
     opening = True
     has_success = True
 
-    def __init__(self, task: str, variation_seed: int):
-        import metaworld
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            # MT1 draws its variations from np.random seeded with the variation
-            # seed (and restores the global state afterwards).
-            benchmark = metaworld.MT1(f"{task}-v3", seed=variation_seed)
-            self.env = benchmark.train_classes[f"{task}-v3"]()
-        self.variations = benchmark.train_tasks   # 50 metaworld.Task
-        self.variation = 0
-        self.env.set_task(self.variations[0])   # the env refuses to reset before a set_task
-        self.model, self.data = self.env.model, self.env.data
+    def __init__(self, name: str, variation_seed: int):
+        from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+        self._classes = ALL_V3_ENVIRONMENTS
+        self._variations = _metaworld_variations(name, variation_seed)
+        self.task_names = tuple(self._variations)
+        # Task sets list their tasks (SEAREnv.tasks, info["task"]); a single task does not.
+        self.tasks = self.task_names if name in _METAWORLD_SETS else None
+        self._envs: dict = {}
+        self._activate(self.task_names[0], 0)   # the env refuses to reset before a set_task
         self.camera = "corner"
         self.robot_root = "base"
-        self.action_dim = int(self.env.action_space.shape[0])
+        self.action_dim = int(self.env.action_space.shape[0])   # 4 for every Sawyer task
 
-    def reset(self, seed: int) -> None:
+    def _activate(self, task: str, variation: int) -> None:
+        if task not in self._envs:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                self._envs[task] = self._classes[f"{task}-v3"]()
+        self.task, self.env = task, self._envs[task]
+        self.variations = self._variations[task]   # this task's 50 metaworld.Task
+        self.variation = variation
+        self.env.set_task(self.variations[variation])
+
+    @property
+    def model(self):
+        return self.env.model
+
+    @property
+    def data(self):
+        return self.env.data
+
+    def draw(self, seed: int, task: str | None = None) -> tuple[str, int]:
+        """The (task, variation) a reset with this seed plays: a uniform task (task sets, unless
+        given), then a uniform variation of it.  A single task draws only the variation, so its
+        episodes are those of the MT1-only version of this class."""
+        rng = np.random.default_rng(seed)
+        if task is None:
+            task = (self.task_names[int(rng.integers(len(self.task_names)))] if self.tasks
+                    else self.task_names[0])
+        return task, int(rng.integers(len(self._variations[task])))
+
+    def reset(self, seed: int, task: str | None = None) -> None:
         # A frozen task leaves nothing else random in a Meta-World reset.
-        self.variation = int(np.random.default_rng(seed).integers(len(self.variations)))
-        self.env.set_task(self.variations[self.variation])
+        self._activate(*self.draw(seed, task))
         self.env.reset()
 
     def step(self, action):
@@ -655,7 +748,8 @@ class _MetaWorldBackend:
         return float(reward), bool(terminated), bool(truncated), {"success": bool(info["success"])}
 
     def close(self):
-        self.env.close()
+        for env in self._envs.values():
+            env.close()
 
 
 # ----------------------------------------------------------------------------
@@ -691,39 +785,24 @@ class SEAREnv(gym.Env):
                  distractions_kwargs: dict | None = None):
         self.name = name
         self.backend = backend
-        self.model, self.data = backend.model, backend.data
+        # Task sets: the task names, for reset(options={"task": name}); None for one task.
+        self.tasks = getattr(backend, "tasks", None)
         self.robot_root = backend.robot_root
-        self.geom_is_robot = robot_geoms(self.model, self.robot_root)
         self.frame_stack, self.action_repeat, self.size = frame_stack, action_repeat, size
         self.mask_noise, self.mask_approx, self.mask_downsample = mask_noise, mask_approx, mask_downsample
         self.mask_scale = backend.mask_scale
         self.render_quality = render_quality
         # False: skip segmentation, obs["mask"] is all zeros (mask-free baselines).
         self.render_mask = render_mask
-
-        m = self.model
-        if render_quality == "fast":
-            # No shadows, no multisampling (must be set before the GL context
-            # is created).  Everything else (lights, reflections) unchanged.
-            m.light_castshadow[:] = 0
-            m.vis.quality.offsamples = 0
-        seg_size = size * self.mask_scale
-        m.vis.global_.offwidth = max(m.vis.global_.offwidth, seg_size)
-        m.vis.global_.offheight = max(m.vis.global_.offheight, seg_size)
+        self._rgb_renderer = self._seg_renderer = None
+        self._bind_model()
 
         self._distractions = None
         if distractions_kwargs is not None:
             cam_id = backend.camera
-            self._distractions = _Distractions(m, backend.domain, self.geom_is_robot, cam_id,
+            self._distractions = _Distractions(self.model, backend.domain, self.geom_is_robot, cam_id,
                                                **distractions_kwargs)
-
-        # One renderer for RGB; a second one for segmentation when masks are
-        # rendered at a higher resolution.
-        self._rgb_renderer = mujoco.Renderer(m, size, size)
-        if seg_size == size:
-            self._seg_renderer = self._rgb_renderer
-        else:
-            self._seg_renderer = mujoco.Renderer(m, seg_size, seg_size)
+        self._make_renderers()
 
         self.action_space = spaces.Box(-1.0, 1.0, (backend.action_dim,), np.float32)
         self.observation_space = spaces.Dict({
@@ -740,6 +819,39 @@ class SEAREnv(gym.Env):
         atexit.register(_close_live_envs)
 
     # -- rendering ------------------------------------------------------------
+    def _bind_model(self):
+        """Take the backend's current MuJoCo model: its robot geoms and render settings."""
+        self.model, self.data = m, _ = self.backend.model, self.backend.data
+        self.geom_is_robot = robot_geoms(m, self.robot_root)
+        if self.render_quality == "fast":
+            # No shadows, no multisampling (must be set before the GL context
+            # is created).  Everything else (lights, reflections) unchanged.
+            # Without shadows the shadow map is never drawn: shadowsize 0 saves
+            # its 4096^2 depth buffer (64 MB per renderer; same pixels).
+            m.light_castshadow[:] = 0
+            m.vis.quality.offsamples = 0
+            m.vis.quality.shadowsize = 0
+        seg_size = self.size * self.mask_scale
+        m.vis.global_.offwidth = max(m.vis.global_.offwidth, seg_size)
+        m.vis.global_.offheight = max(m.vis.global_.offheight, seg_size)
+
+    def _make_renderers(self):
+        """One renderer for RGB; a second one for segmentation when masks are rendered at a
+        higher resolution.  A task set's models differ per task (other objects, meshes and
+        textures): the renderers are made again when the task changes, which costs ~0.5 s per
+        switch but holds one pair at a time (a pair holds 0.1-0.3 GB of textures and buffers;
+        one per MT50 task would take many GB; EXPERIMENTS.md, "Multi-task")."""
+        self._close_renderers()
+        self._rgb_renderer = mujoco.Renderer(self.model, self.size, self.size)
+        seg_size = self.size * self.mask_scale
+        self._seg_renderer = (self._rgb_renderer if seg_size == self.size
+                              else mujoco.Renderer(self.model, seg_size, seg_size))
+
+    def _close_renderers(self):
+        for r in {id(r): r for r in (self._rgb_renderer, self._seg_renderer) if r is not None}.values():
+            r.close()
+        self._rgb_renderer = self._seg_renderer = None
+
     def _upload(self, textures=(), hfields=()):
         """Send changed textures / height fields to the GPU copies our renderers hold."""
         renderers = {id(r): r for r in (self._rgb_renderer, self._seg_renderer)}.values()
@@ -796,13 +908,25 @@ class SEAREnv(gym.Env):
 
     # -- gymnasium API ------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """``options={"task": name}`` (task sets only) starts an episode of that task; without it a
+        task set draws the task from the seed.  Task sets name the task in ``info["task"]``."""
+        task = (options or {}).get("task")
+        if task is not None and task not in (self.tasks or ()):
+            raise EnvError(f"reset: {self.name} has no task {task!r}"
+                           + (f"; tasks: {', '.join(self.tasks)}" if self.tasks else " (not a task set)"))
         if seed is not None:
             self._rng = np.random.default_rng(seed)
         episode_seed = int(self._rng.integers(2**31 - 1))
         if self._distractions is not None:
             # Before the physics reset: its mj_forward places the (perturbed) camera.
             self._upload(textures=self._distractions.apply(self._rng))
-        self.backend.reset(episode_seed)
+        if task is None:
+            self.backend.reset(episode_seed)
+        else:
+            self.backend.reset(episode_seed, task=task)
+        if self.backend.model is not self.model:   # a task set switched tasks
+            self._bind_model()
+            self._make_renderers()
         if self.model.nhfield:
             # Tasks that draw a new terrain per episode (quadruped-escape) write
             # it into the model; our renderers hold their own GPU copy (without
@@ -813,7 +937,10 @@ class SEAREnv(gym.Env):
             self._frames.append(rgb)
             self._masks.append(mask)
         self._needs_reset = False
-        return self._obs(), {}
+        return self._obs(), self._task_info()
+
+    def _task_info(self) -> dict:
+        return {"task": self.backend.task} if self.tasks else {}
 
     def step(self, action):
         if self._needs_reset:
@@ -829,6 +956,7 @@ class SEAREnv(gym.Env):
                 break
         if self.backend.has_success:
             info = {**info, "success": success}
+        info = {**info, **self._task_info()}
         rgb, mask = self._render()
         self._frames.append(rgb)
         self._masks.append(mask)
@@ -840,8 +968,7 @@ class SEAREnv(gym.Env):
             return
         self._closed = True
         _LIVE_ENVS.discard(self)
-        for r in {id(r): r for r in (self._rgb_renderer, self._seg_renderer)}.values():
-            r.close()
+        self._close_renderers()
         self.backend.close()
 
 
@@ -851,7 +978,7 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
              render_quality: str = "paper", split: str = "train",
              mask_downsample: str = "majority", camera_distraction: float = 0.0,
              color_distraction: float = 0.0, render_mask: bool = True,
-             variation_seed: int | None = None) -> SEAREnv:
+             variation_seed: int | None = None, kitchen_camera: str = "fixed") -> SEAREnv:
     """Build a SEAR pixel env.  See the module docstring for the contract.
 
     ``backgrounds``/``difficulty``/``split``/``camera_distraction``/
@@ -863,8 +990,11 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     ``render_mask=False`` skips the segmentation render (obs["mask"] is then
     all zeros), for mask-free baselines.
     ``variation_seed`` (Meta-World only; defaults to ``seed``) seeds the MT1
-    benchmark whose 50 task variations the resets sample from: give the train
-    and the eval env the same value so both see the same 50 placements.
+    benchmark (MT10, MT50 for those sets) whose 50 variations per task the
+    resets sample from: give the train and the eval env the same value so both
+    see the same placements.
+    ``kitchen_camera`` (Kitchen only): "fixed" (the authors' default view) or
+    "random" (one of their six views per episode, drawn from the reset seed).
     """
     suite, args = _parse_name(name)
     if difficulty not in _DIFFICULTY_NUM_VIDEOS:
@@ -885,6 +1015,10 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
         raise EnvError(f"action_repeat must be >= 1; got {action_repeat}")
     if backgrounds is not None and suite != "distracting":
         raise EnvError(f"backgrounds only apply to *-distracting envs, not {name!r}")
+    if kitchen_camera not in ("fixed", "random"):
+        raise EnvError(f"kitchen_camera must be 'fixed' or 'random'; got {kitchen_camera!r}")
+    if kitchen_camera == "random" and suite != "kitchen":
+        raise EnvError(f"a random kitchen camera only applies to kitchen-* envs, not {name!r}")
 
     distractions_kwargs = None
     if suite == "distracting":
@@ -898,7 +1032,7 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
         backend = _MetaWorldBackend(*args, variation_seed=seed if variation_seed is None
                                     else variation_seed)
     else:
-        backend = _GymBackend(suite, *args, seed=seed)
+        backend = _GymBackend(suite, *args, seed=seed, kitchen_camera=kitchen_camera)
     return SEAREnv(backend, name=name, seed=seed, frame_stack=frame_stack,
                    action_repeat=action_repeat, size=size, mask_noise=mask_noise,
                    mask_approx=mask_approx, mask_downsample=mask_downsample,

@@ -3,6 +3,7 @@
 Usage:  python plot.py runs/ --out curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out mt10.png
         python plot.py maps RUN_A [RUN_B ...] --out maps.png [--frames N]   (activation maps, below)
 
 Arguments are run directories (holding config.json), parent folders (every folder below holding a
@@ -17,6 +18,9 @@ Aligning runs of one group:
   train.csv  episodes end at different frames in each run, so the curves are linearly
              INTERPOLATED onto the union of their frames, cut to the span all runs cover.
 
+--per-task draws task-set runs (metaworld-mt3/-mt10/-mt50) one panel per task, from eval.csv's
+per-task columns (success/<task>, return/<task>).
+
 `plot.py maps` draws what the encoder's last convolution responds to, for runs on one env and on
 the same frames (the paper's section 5), and measures each channel's share of activation on the
 robot; its table (robot / environment channels per run) goes to stdout.
@@ -29,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import glob
 import json
 import math
@@ -104,6 +107,26 @@ def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> di
             "values": np.array([points[x] for x in frames])}
 
 
+def task_columns(run_dir: str, metric: str) -> list[str]:
+    """The tasks of a task-set run, from its eval.csv's <metric>/<task> columns (in their order)."""
+    path = os.path.join(run_dir, "eval.csv")
+    if not os.path.exists(path):
+        raise NoLogYet(f"no eval.csv (the run stopped before {FIRST_ROW['eval']} ended)")
+    with open(path, newline="") as f:
+        header = next(csv.reader(f), [])
+    tasks = [c[len(metric) + 1:] for c in header if c.startswith(metric + "/")]
+    if not tasks:
+        raise PlotError(f"{path}: no per-task columns ({metric}/<task>); --per-task needs task-set runs "
+                        f"(metaworld-mt3, -mt10, -mt50)")
+    return tasks
+
+
+def load_task_runs(run_dir: str, metric: str) -> list[dict]:
+    """One load_run per task of a task-set run, each marked with its task."""
+    return [{**load_run(run_dir, "eval", f"{metric}/{task}"), "task": task}
+            for task in task_columns(run_dir, metric)]
+
+
 # ---------------------------------------------------------------- statistics
 def t_quantile(p: float, df: int) -> float:
     """Student-t quantile: the 95% interval of a mean over few seeds is wider than +-1.96 sd/sqrt(n)."""
@@ -150,7 +173,7 @@ def short_frames(x, _pos=None) -> str:
     return f"{x / 1e6:g}M" if abs(x) >= 1e6 else f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
 
 
-def plot(panels: dict, out: str, ylabel: str, title: str):
+def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None):
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
@@ -166,6 +189,8 @@ def plot(panels: dict, out: str, ylabel: str, title: str):
             ax.plot(frames, mean, color=colors[label], label=f"{label} (n={n})")
             if n > 1:
                 ax.fill_between(frames, mean - ci, mean + ci, color=colors[label], alpha=0.2, lw=0)
+        if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
+            ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
         ax.set_title(panel if len(panels) > 1 else title)
         ax.set_xlabel("frames")
         ax.set_ylabel(ylabel)
@@ -207,21 +232,17 @@ ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; 
 
 def load_snapshot_run(run_dir: str):
     """(sear.Config, snapshot) of a run directory; PlotError for anything that is not one."""
-    import torch
     import sear
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
         raise PlotError(f"{run_dir} is not a run directory (no config.json)")
-    path = os.path.join(run_dir, "snapshot.pt")
-    if not os.path.isfile(path):
-        raise PlotError(f"{run_dir} has no snapshot.pt (the run stopped before its first snapshot)")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        known = {f.name for f in dataclasses.fields(sear.Config)}
-        cfg = sear.Config(**{k: v for k, v in state["config"].items() if k in known})
-    except Exception as e:  # a corrupt or foreign file: one line, whole sentences
-        reason = sear.first_sentence(e)
-        raise PlotError(f"cannot read {path}: {type(e).__name__}" + (f": {reason}" if reason else "")) from None
-    return cfg, state
+        state = sear.load_snapshot(run_dir, flag="")
+        return sear.saved_config(state["config"]), state
+    except sear.ConfigError as e:
+        raise PlotError(str(e)) from None
+    except (KeyError, TypeError) as e:  # a torch file, but not a sear.py snapshot
+        raise PlotError(f"{run_dir}/snapshot.pt is not a sear.py snapshot ({type(e).__name__}: "
+                        f"{sear.first_sentence(e)})") from None
 
 
 def trained_agent(cfg, state, action_dim: int):
@@ -238,23 +259,27 @@ def trained_agent(cfg, state, action_dim: int):
 def open_env(cfg):
     """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
     clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
-    import envs
+    import sear
     try:
-        return envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", variation_seed=cfg.seed,
-                             frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None,
-                             backgrounds=cfg.backgrounds or None, difficulty=cfg.difficulty,
-                             render_quality=cfg.render_quality, mask_downsample=cfg.mask_downsample,
-                             camera_distraction=cfg.camera_distraction, color_distraction=cfg.color_distraction)
-    except envs.EnvError as e:
+        return sear.make_run_env(cfg, "eval", mask_noise=0.0, mask_approx=False, render_mask=True)
+    except sear.ConfigError as e:
         raise PlotError(str(e)) from None
 
 
 def map_frames(env, cfg, agent, n: int):
     """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart, from the reset of the
-    run's first evaluation episode, acting with `agent`'s mean action; and the steps they were at."""
+    run's first evaluation episode (its seed, its task), acting with `agent`'s mean action; and the
+    steps they were at (counted on across episodes, should one end first)."""
     import sear
+    tasks = sear.eval_tasks(env, cfg)
+
+    def reset(i):
+        task = tasks[i % len(tasks)]
+        options = None if task is None else {"task": task}
+        return env.reset(seed=sear.episode_seed(cfg.seed + 100_000, i), options=options)[0]
+
     episode, t, pixels, masks, steps = 0, 0, [], [], []
-    obs, _ = env.reset(seed=sear.episode_seed(cfg.seed + 100_000, episode))
+    obs = reset(episode)
     while True:
         if t % MAPS_STRIDE == 0:
             pixels.append(obs["pixels"]), masks.append(obs["mask"]), steps.append(t)
@@ -264,7 +289,7 @@ def map_frames(env, cfg, agent, n: int):
         t += 1
         if terminated or truncated:  # a short episode: the next evaluation episode goes on
             episode += 1
-            obs, _ = env.reset(seed=sear.episode_seed(cfg.seed + 100_000, episode))
+            obs = reset(episode)
 
 
 def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
@@ -457,9 +482,20 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
     parser.add_argument("--group", default="method", help="config keys, comma separated: method,env")
     parser.add_argument("--title", default=None)
+    parser.add_argument("--per-task", action="store_true",
+                        help="task sets: one panel per task, from eval.csv's <metric>/<task> columns")
+    parser.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
+                        help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = parser.parse_args(argv)
     try:
+        baseline = None
+        if args.baseline is not None:
+            value, _, label = args.baseline.partition(":")
+            try:
+                baseline = (float(value), label or "baseline")
+            except ValueError:
+                raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
         if args.metric not in METRICS:
             raise PlotError(f"unknown metric {args.metric!r} (choose from {', '.join(METRICS)})")
         if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
@@ -467,21 +503,27 @@ def main(argv=None) -> int:
         keys = [k.strip() for k in args.group.split(",") if k.strip()]
         if not keys:
             raise PlotError("--group needs at least one config key, e.g. method")
+        if args.per_task and args.csv != "eval":
+            raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
         runs = []
         found = find_runs(args.paths)
         for d in found:
             try:
-                runs.append(load_run(d, args.csv, args.metric))
+                runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
             except NoLogYet as e:  # one run stopped early must not hide all the others
                 print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
         if not runs:
             raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
         envs = sorted({env_of(r) for r in runs})
-        # One subplot per env, unless env is already told apart by the lines (or there is just one).
+        # One subplot per env, unless env is already told apart by the lines (or there is just one);
+        # with --per-task one per task (and env).
         by_env = len(envs) > 1 and "env" not in keys
+        keyed = {}
+        for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
+            key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
+            keyed.setdefault(key or ", ".join(envs), []).append(r)
         panels = {}
-        for panel in (envs if by_env else [", ".join(envs)]):
-            members = [r for r in runs if not by_env or env_of(r) == panel]
+        for panel, members in keyed.items():
             panels[panel] = {}
             for label, group in group_runs(members, keys).items():
                 seeds = [r["config"].get("seed") for r in group]
@@ -489,11 +531,13 @@ def main(argv=None) -> int:
                     print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
                 curves = [(r["frames"], r["values"]) for r in group]
                 envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
+                if "task" in group[0]:  # --per-task: the table names the task too
+                    envs_of_group += f": {group[0]['task']}"
                 panels[panel][label] = (*aggregate(curves, interpolate=args.csv == "train"),
                                         len(group), envs_of_group)
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        plot(panels, args.out, ylabel, title)
+        plot(panels, args.out, ylabel, title, baseline)
     except PlotError as e:
         print(f"plot.py: error: {e}", file=sys.stderr)
         return 2

@@ -23,6 +23,8 @@ Sections, in reading order:
 
 Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
         python sear.py --resume runs/<run dir>
+        python sear.py --env metaworld-mt10                                # multi-task, per-task evaluation
+        python sear.py --env metaworld-hammer --init-from runs/<mt10 run>  # transfer
 """
 from __future__ import annotations
 
@@ -33,15 +35,39 @@ import dataclasses
 import json
 import math
 import os
+import queue
 import random
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-import torch
-import torch.nn as nn
-import torch.nn.functional as F
+# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
+# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
+# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
+GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
+
+
+def reexec_with_huge_pages():
+    """On Linux/glibc, restart this process once with the GLIBC_MALLOC tunables above.
+    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) would otherwise be mapped
+    and unmapped by glibc at every update: with 4 KB pages ~1.8M page faults per SEAR update, and
+    still ~60k with huge pages alone (EXPERIMENTS.md, "Update speed"). glibc reads GLIBC_TUNABLES
+    only at start-up, hence the re-exec. Other platforms ignore the variable."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
+        return
+    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
+    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
+
+
+if __name__ == "__main__":  # before numpy and torch load: a re-exec costs a bare interpreter, not torch's import
+    reexec_with_huge_pages()
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import torch.nn as nn  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
 
 
 # ================================================================================================
@@ -62,6 +88,8 @@ class Config:
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
     precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
                                  "actor, critic and losses stay fp32")
+    prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
+                                "background thread while the current update runs")
     threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
                           "Several runs on one machine: give each cores / runs")
     run_root: str = arg("runs", "folder that holds run directories")
@@ -71,6 +99,11 @@ class Config:
     save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
     save_video: bool = arg(False, "write each evaluation's first episode to videos/eval_<frame>.mp4: camera | true "
                                   "mask | predicted mask | reconstruction (the panels the method has)")
+    init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
+                             "metaworld-mt10); method and network sizes follow that run unless given")
+    init_parts: str = arg("encoder+decoders", "with --init-from, what to copy: encoder | encoder+decoders (the "
+                                              "method's auxiliary networks too; the authors' fine-tuning) | all "
+                                              "(also actor and critic); the rest and the optimisers start fresh")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
@@ -83,6 +116,7 @@ class Config:
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)")
     camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
     color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
+    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)")
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
     seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
@@ -101,7 +135,9 @@ class Config:
     std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action repeat)")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
     eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
-    eval_episodes: int = arg(10, "episodes per evaluation, mean action")
+    eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
+    eval_episodes_per_task: int = arg(0, "task sets (metaworld-mt*): evaluation episodes of every task; "
+                                         "0 = ceil(--eval-episodes / number of tasks)")
     # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same 4:1 ratio) ---
     recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (mae too; ae uses 2 x c1, as the authors)")
     mask_coef: float = arg(0.0025, "c2: weight of the mask loss")
@@ -127,6 +163,11 @@ def _manipulation(cfg):
     return cfg.env.split("-")[0] in ("metaworld", "kitchen", "adroit")
 
 
+def _multitask(cfg):
+    import envs  # imported late so --help needs no MuJoCo
+    return envs.is_task_set(cfg.env)
+
+
 def _authors_discount(cfg):
     import envs  # the suite's default action repeat; imported late so --help needs no MuJoCo
     return round(0.99 ** (1 + (cfg.action_repeat or envs.default_action_repeat(cfg.env))), 6)
@@ -145,18 +186,31 @@ RECIPES = {"authors": (
     ("discount", _manipulation, _authors_discount,
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
+    # The paper's multi-task latent is 512 (MULTITASK below); the authors' code keeps 4096 there too.
+    ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
 )}
 
 
+# The paper's multi-task settings (its hyper-parameter table), applied under both recipes before the
+# recipe's own rows: the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x
+# longer exploration schedule. The authors' code keeps latent 4096 there (its row in RECIPES).
+MULTITASK = (
+    ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
+    ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
+                                         "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
+)
+
+
 def apply_recipe(cfg, explicit: set) -> list[str]:
-    """Set the recipe's values on `cfg`, except fields the user gave explicitly. Returns what changed."""
-    changed = []
-    for name, applies, value, source in RECIPES.get(cfg.recipe, ()):
+    """Set the multi-task rows, then the recipe's values on `cfg`, except fields the user gave
+    explicitly. Returns what changed."""
+    changed = {}  # a recipe row may override a multi-task row: report the value that stands
+    for name, applies, value, source in (*MULTITASK, *RECIPES.get(cfg.recipe, ())):
         if name in explicit or not applies(cfg):
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)
-        changed.append(f"{name}={getattr(cfg, name)} ({source})")
-    return changed
+        changed[name] = f"{name}={getattr(cfg, name)} ({source})"
+    return list(changed.values())
 
 
 class ConfigError(ValueError):
@@ -194,6 +248,8 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--precision must be fp32 or bf16, got '{cfg.precision}'")
     if not cfg.snapshot_minutes >= 0:
         raise ConfigError(f"--snapshot-minutes must be >= 0, got {cfg.snapshot_minutes}")
+    if cfg.prefetch not in ("auto", "on", "off"):
+        raise ConfigError(f"--prefetch must be auto, on or off, got '{cfg.prefetch}'")
     if cfg.threads < 0:
         raise ConfigError(f"--threads must be >= 0, got {cfg.threads}")
     if cfg.render_quality not in ("paper", "fast"):
@@ -203,6 +259,12 @@ def validate(cfg: Config) -> None:
             import imageio_ffmpeg  # noqa: F401  (brings its own ffmpeg binary)
         except ImportError:
             raise ConfigError("--save-video needs imageio-ffmpeg: pip install -r requirements.txt") from None
+    if cfg.kitchen_camera not in ("fixed", "random"):
+        raise ConfigError(f"--kitchen-camera must be fixed or random, got '{cfg.kitchen_camera}'")
+    if cfg.eval_episodes_per_task < 0:
+        raise ConfigError(f"--eval-episodes-per-task must be >= 0, got {cfg.eval_episodes_per_task}")
+    if cfg.init_parts not in INIT_PARTS:
+        raise ConfigError(f"--init-parts must be {' or '.join(INIT_PARTS)}, got '{cfg.init_parts}'")
 
 
 # ================================================================================================
@@ -690,6 +752,42 @@ class Agent:
             self.aux.load_state_dict(state["aux"])
 
 
+# Transfer (--init-from): which networks of another run's agent a new run starts from.
+INIT_PARTS = {"encoder": ("encoder",), "encoder+decoders": ("encoder", "aux"),
+              "all": ("encoder", "aux", "actor", "critic")}
+
+
+def init_fields(cfg) -> tuple[str, ...]:
+    """The config fields that fix the shapes of the parts --init-parts copies: they must be the
+    source run's."""
+    fields = ("method", "latent_dim", "frame_stack")
+    if cfg.init_parts != "encoder" and cfg.method == "curl":
+        fields += ("curl_dim",)  # CURL's projection heads are its auxiliary networks
+    if cfg.init_parts == "all":
+        fields += ("feature_dim", "hidden_dim")
+    return fields
+
+
+def copy_parts(agent: Agent, source: dict, parts: str) -> None:
+    """Load `parts` of a saved agent state (a snapshot's "agent") into a freshly built agent; the other
+    networks keep their fresh initialisation and the optimisers stay fresh (Adam's moments are
+    empty; the loads write into the parameters the optimisers already hold). "aux" is the method's
+    auxiliary networks: SEAR's two decoders, AE's and MAE's decoder, CURL's heads and key encoder;
+    drq and rgbm have none. As in the authors' load_pretrained_weights, the target critic starts as
+    a copy of the loaded critic."""
+    names = INIT_PARTS[parts]
+    agent.encoder.load_state_dict(source["encoder"])
+    if agent.aux is not None:
+        if "aux" in names:
+            agent.aux.load_state_dict(source["aux"])
+        elif isinstance(agent.aux, CURLAux):  # its key encoder is a momentum copy: it starts equal
+            agent.aux.key_encoder.load_state_dict(source["encoder"])
+    if "actor" in names:
+        agent.actor.load_state_dict(source["actor"])
+        agent.critic.load_state_dict(source["critic"])
+        agent.critic_target.load_state_dict(agent.critic.state_dict())
+
+
 # ================================================================================================
 # 6. Replay buffer
 # ================================================================================================
@@ -763,8 +861,12 @@ class ReplayBuffer:
     def can_sample(self):
         return self.t - max(0, self.t - self.capacity) > self.nstep + 1
 
-    def sample(self, batch_size, rng: np.random.Generator):
+    def sample(self, batch_size, rng: np.random.Generator, margin: int = 0):
+        """`margin` skips the oldest slots of a full ring: a background sampler must not read a slot
+        that the training loop is overwriting while it samples."""
         lo, hi = max(0, self.t - self.capacity), self.t - 1 - self.nstep
+        if self.t > self.capacity:
+            lo = min(lo + margin, hi)
         l = rng.integers(lo, hi + 1, size=batch_size)
         bad = self.first[(l + 1) % self.capacity]
         while bad.any():  # rejection keeps sampling uniform over valid starts without listing them
@@ -811,6 +913,59 @@ class ReplayBuffer:
             for name in ("frames", "masks", "actions", "rewards", "terminal", "first"):
                 getattr(self, name)[:n] = data[name]
             self.t = int(data["t"])  # a wrapped ring is saved in physical order: same slots here
+
+
+class Prefetcher:
+    """Replay sampling and the host->device copy of the next batch, in a background thread while the
+    current update runs (--prefetch; on by default with CUDA, where the update no longer waits for
+    the host). One batch ahead: a batch cannot hold the newest `update_every` steps, and the sampling
+    RNG runs one batch ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
+
+    def __init__(self, buffer: ReplayBuffer, batch_size: int, rng: np.random.Generator, device: torch.device,
+                 margin: int):
+        self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
+        self.queue: queue.Queue = queue.Queue(maxsize=1)
+        self.stop = threading.Event()
+        self.thread = None
+        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+
+    def _produce(self):
+        while not self.stop.is_set():
+            try:
+                batch = tuple(torch.as_tensor(x) for x in self.buffer.sample(self.batch_size, self.rng, self.margin))
+                event = None
+                if self.stream is not None:
+                    with torch.cuda.stream(self.stream):
+                        batch = tuple(x.pin_memory().to(self.device, non_blocking=True) for x in batch)
+                        event = torch.cuda.Event()
+                        event.record(self.stream)
+            except Exception as e:  # hand it to the learner, which raises it: never hang
+                self.queue.put((e, None))
+                return
+            self.queue.put((batch, event))  # waits until the learner has taken the previous batch
+
+    def next(self):
+        if self.thread is None:  # started at the first update, once the buffer can be sampled
+            self.thread = threading.Thread(target=self._produce, daemon=True)
+            self.thread.start()
+        batch, event = self.queue.get()
+        if isinstance(batch, Exception):
+            raise batch
+        if event is not None:  # the update's stream waits for the copy, and owns the tensors after it
+            current = torch.cuda.current_stream(self.device)
+            event.wait(current)
+            for x in batch:
+                x.record_stream(current)
+        return batch
+
+    def close(self):
+        self.stop.set()
+        while self.thread is not None and self.thread.is_alive():
+            try:  # unblock a producer waiting on a full queue
+                self.queue.get_nowait()
+            except queue.Empty:
+                pass
+            self.thread.join(timeout=0.05)
 
 
 # ================================================================================================
@@ -898,18 +1053,44 @@ def first_sentence(text) -> str:
     return sentence if not sentence or sentence.endswith((".", "!", "?")) else sentence + "."
 
 
-def load_snapshot(run_dir):
+def load_snapshot(run_dir, flag="--resume", mmap=False):
+    """A run's snapshot.pt; every problem is a ConfigError naming `flag` (if any). mmap=True maps the
+    tensors instead of reading them (--init-from reads a snapshot twice: its config, then its weights)."""
     path = os.path.join(run_dir, "snapshot.pt")
+    flag = f"{flag}: " if flag else ""
     if not os.path.isdir(run_dir):
-        raise ConfigError(f"--resume: no such run directory '{run_dir}'")
+        raise ConfigError(f"{flag}no such run directory '{run_dir}'")
     if not os.path.exists(path):
-        raise ConfigError(f"--resume: '{run_dir}' has no snapshot.pt (the run stopped before its first "
+        raise ConfigError(f"{flag}'{run_dir}' has no snapshot.pt (the run stopped before its first "
                           f"snapshot; see --snapshot-minutes)")
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as e:  # corrupt or foreign file: say so in one line
         reason = first_sentence(e)
-        raise ConfigError(f"--resume: cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+        raise ConfigError(f"{flag}cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+
+
+def saved_config(saved: dict, given: dict | None = None) -> Config:
+    """The Config of a snapshot's saved config dict (fields since removed are dropped, renamed ones
+    carried over), with the flags in `given` on top."""
+    saved = dict(saved)
+    if "std_frames" in saved and "std_steps" not in saved:  # snapshots from before std counted steps
+        saved["std_steps"] = max(1, saved["std_frames"] // max(1, saved.get("action_repeat") or 1))
+    known = {f.name for f in dataclasses.fields(Config)}
+    return Config(**{**{k: v for k, v in saved.items() if k in known}, **(given or {})})
+
+
+def load_init_source(cfg, action_dim):
+    """The agent state of the --init-from run, checked against this run (its config was checked by
+    parse_args; the action size is known once the env is built). Called before the run dir exists."""
+    state = load_snapshot(cfg.init_from, "--init-from", mmap=True)
+    if cfg.init_parts == "all":
+        # The actor's last layer maps to the actions: its output size is the source's action size.
+        source_dim = [v for k, v in state["agent"]["actor"].items() if k.endswith(".weight")][-1].shape[0]
+        if source_dim != action_dim:
+            raise ConfigError(f"--init-parts all: the source run's actor has {source_dim} actions, {cfg.env} "
+                              f"has {action_dim}; copy encoder or encoder+decoders instead")
+    return state["agent"]
 
 
 def saved_buffer_t(path):
@@ -1008,24 +1189,32 @@ def episode_seed(seed, episode):
 
 def make_envs(cfg: Config):
     import envs  # imported here so that `--help` and config errors need no MuJoCo
+    train_env, eval_env = make_run_env(cfg, "train"), make_run_env(cfg, "eval")
+    cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
+    return train_env, eval_env
+
+
+def make_run_env(cfg: Config, split: str, **overrides):
+    """The run's train or eval env, as its config describes it; `overrides` replace make_env
+    arguments (plot.py maps: clean masks, rendered for every method)."""
+    import envs
     kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None, mask_noise=cfg.mask_noise,
                   mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
                   difficulty=cfg.difficulty, render_quality=cfg.render_quality,
                   mask_downsample=cfg.mask_downsample, camera_distraction=cfg.camera_distraction,
-                  color_distraction=cfg.color_distraction, render_mask=METHODS[cfg.method].uses_mask)
+                  color_distraction=cfg.color_distraction, render_mask=METHODS[cfg.method].uses_mask,
+                  kitchen_camera=cfg.kitchen_camera) | overrides
+    # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
+    # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
+    seed = cfg.seed + (100_000 if split == "eval" else 0)
     try:
-        # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
-        # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
-        train_env = envs.make_env(cfg.env, seed=cfg.seed, split="train", variation_seed=cfg.seed, **kwargs)
-        eval_env = envs.make_env(cfg.env, seed=cfg.seed + 100_000, split="eval", variation_seed=cfg.seed, **kwargs)
+        env = envs.make_env(cfg.env, seed=seed, split=split, variation_seed=cfg.seed, **kwargs)
     except envs.EnvError as e:
         raise ConfigError(str(e))
-    cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
     if cfg.max_episode_steps:  # an earlier time limit is a truncation, like the suite's own
         from gymnasium.wrappers import TimeLimit
-        train_env = TimeLimit(train_env, cfg.max_episode_steps)
-        eval_env = TimeLimit(eval_env, cfg.max_episode_steps)
-    return train_env, eval_env
+        env = TimeLimit(env, cfg.max_episode_steps)
+    return env
 
 
 # --- What the decoders see at evaluation: representation metrics and videos ---------------------
@@ -1045,9 +1234,9 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 class EvalWatch:
     """The eval env as evaluate() sees it, plus a look at what the decoders make of it.
 
-    Every observation the env returns (each reset and step: all frames of all evaluation episodes)
-    is encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its newest frame
-    is scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per pixel, where
+    Every SCORE_EVERY-th observation the env returns (counting each reset and step of all evaluation
+    episodes) is encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its
+    newest frame is scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per pixel, where
     the env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so with
     --mask-noise or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1] image,
     after the [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a video
@@ -1056,6 +1245,10 @@ class EvalWatch:
     without decoders and without a video has its observations passed through untouched."""
 
     BATCH = 32
+    # Encoding and decoding a frame again costs about half of a fast-render evaluation step on CPU
+    # (EXPERIMENTS.md, "Inspection"); neighbouring frames differ little, so a tenth of them (~500
+    # frames per default evaluation) gives the same means at a tenth of the cost.
+    SCORE_EVERY = 10
     SCALE = 4  # nearest upscaling, 84 -> 336 px: visible, and a multiple of ffmpeg's 16-px macro blocks
     LABEL = 16  # height of the strip that names the panels (336 + 16 = 22 x 16 again)
     FPS = 20
@@ -1065,7 +1258,7 @@ class EvalWatch:
         self.agent, self.env, self.video_path = agent, env, video_path
         self.decodes = agent.aux.decodes if agent.aux is not None else ()
         self.true_mask = agent.method.uses_mask  # mask-free methods' envs skip the segmentation render
-        self.pending, self.values, self.episode, self.video = [], {}, -1, None
+        self.pending, self.values, self.episode, self.seen, self.video = [], {}, -1, 0, None
 
     def __getattr__(self, name):  # everything else (spaces, close, ...) is the env's
         return getattr(self.env, name)
@@ -1083,8 +1276,10 @@ class EvalWatch:
 
     def see(self, obs):
         filming = self.video_path is not None and self.episode == 0
-        if self.decodes or filming:  # the env's arrays are fresh at every step: kept, not copied
-            self.pending.append((filming, obs["pixels"], obs["mask"][-1]))
+        scoring = bool(self.decodes) and self.seen % self.SCORE_EVERY == 0
+        self.seen += 1
+        if scoring or filming:  # the env's arrays are fresh at every step: kept, not copied
+            self.pending.append((filming, scoring, obs["pixels"], obs["mask"][-1]))
             if len(self.pending) == self.BATCH:
                 self.flush()
 
@@ -1092,8 +1287,8 @@ class EvalWatch:
     def flush(self):
         if not self.pending:
             return
-        filming, pixels, masks = zip(*self.pending)
-        self.pending = []
+        filming, scoring, pixels, masks = zip(*self.pending)
+        self.pending, scored = [], np.flatnonzero(scoring)
         agent = self.agent
         pixels = torch.as_tensor(np.stack(pixels), device=agent.device).float()
         true = torch.as_tensor(np.stack(masks), device=agent.device).float()
@@ -1109,16 +1304,16 @@ class EvalWatch:
             logits = decoded["mask"][:, -1].float()
             panels["predicted mask"] = torch.sigmoid(logits)
             if self.true_mask:
-                self.add("mask_iou", mask_iou(logits > 0, true))  # sigmoid > 0.5 <=> logit > 0
+                self.add("mask_iou", mask_iou(logits > 0, true)[scored])  # sigmoid > 0.5 <=> logit > 0
                 bce = F.binary_cross_entropy_with_logits(logits, true, reduction="none")
-                self.add("mask_bce", bce.flatten(1).mean(1))
+                self.add("mask_bce", bce.flatten(1).mean(1)[scored])
         if "recon" in decoded:
             panels["reconstruction"] = decoded["recon"][:, -3:].float().clamp(-0.5, 0.5) + 0.5
-            self.add("recon_psnr", psnr(panels["reconstruction"], panels["camera"]))
+            self.add("recon_psnr", psnr(panels["reconstruction"], panels["camera"])[scored])
         if any(filming):
             self.film(panels, np.flatnonzero(filming))
 
-    def add(self, name, per_frame: torch.Tensor):
+    def add(self, name, per_frame: torch.Tensor):  # only the frames to score: films are decoded whole
         self.values.setdefault(name, []).extend(per_frame.tolist())
 
     def film(self, panels: dict, rows):
@@ -1164,12 +1359,35 @@ def label_strip(labels: list[str], panel_width: int, height: int) -> np.ndarray:
     return np.asarray(strip)
 
 
-def evaluate(agent, env, cfg: Config, frame, on_step=None):
+def eval_tasks(env, cfg: Config) -> list:
+    """The task of every evaluation episode: None (the env's own draw) --eval-episodes times, or for a
+    task set k episodes of each task, task after task (k = --eval-episodes-per-task, by default
+    ceil(--eval-episodes / tasks): at least --eval-episodes in all). The authors evaluate task sets
+    on 10 episodes of random tasks; per-task numbers need every task."""
+    tasks = getattr(env.unwrapped, "tasks", None)
+    if not tasks:
+        return [None] * cfg.eval_episodes
+    k = cfg.eval_episodes_per_task or math.ceil(cfg.eval_episodes / len(tasks))
+    return [task for task in tasks for _ in range(k)]
+
+
+def per_task_columns(per_task: dict) -> dict:
+    """eval.csv's per-task columns: mean return and success rate of each task's episodes."""
+    row = {}
+    for task, episodes in per_task.items():
+        row[f"return/{task}"] = float(np.mean([ret for ret, _ in episodes]))
+        row[f"success/{task}"] = float(np.mean([success for _, success in episodes]))
+    return row
+
+
+def evaluate(agent, env, cfg: Config, frame, on_step=None, per_task=None):
     """Mean action, separately seeded env; the same reset seeds at every eval make evals comparable.
-    on_step(episode, step), if given, is called after every step (the progress line)."""
+    on_step(episode, step), if given, is called after every step (the progress line). A task set
+    runs every task (eval_tasks); per_task, if given, collects {task: [(return, success), ...]}."""
     returns, successes = [], []
-    for i in range(cfg.eval_episodes):
-        obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i))
+    for i, task in enumerate(eval_tasks(env, cfg)):
+        obs, info = env.reset(seed=episode_seed(cfg.seed + 100_000, i),
+                              options=None if task is None else {"task": task})
         done, ret, success, t = False, 0.0, False, 0
         while not done:
             action = agent.act(obs["pixels"], obs["mask"], frame // cfg.action_repeat, eval_mode=True)
@@ -1183,6 +1401,8 @@ def evaluate(agent, env, cfg: Config, frame, on_step=None):
         returns.append(ret)
         if "success" in info:
             successes.append(float(success))
+        if per_task is not None and task is not None:
+            per_task.setdefault(task, []).append((ret, float(success)))
     return float(np.mean(returns)), (float(np.mean(successes)) if successes else None)
 
 
@@ -1222,6 +1442,8 @@ def train(cfg: Config, resume_state: dict | None = None):
         device = pick_device(cfg.device)
         torch.set_num_threads(cfg.threads or default_threads())
         train_env, eval_env = make_envs(cfg)  # also resolves action_repeat 0 to the suite's default
+        init_source = (load_init_source(cfg, train_env.action_space.shape[0])
+                       if cfg.init_from and resume_state is None else None)
         if not cfg.resume:
             run_dir = new_run_dir(cfg)
             with open(os.path.join(run_dir, "config.json"), "w") as f:
@@ -1234,9 +1456,16 @@ def train(cfg: Config, resume_state: dict | None = None):
 
         action_dim = train_env.action_space.shape[0]
         agent = Agent(cfg, action_dim, device)
+        if init_source is not None:  # transfer: a new run from another run's networks
+            copy_parts(agent, init_source, cfg.init_parts)
         pixel_shape = train_env.observation_space["pixels"].shape
         buffer = ReplayBuffer(cfg.replay_size, (3, *pixel_shape[1:]), action_dim, cfg.frame_stack,
                               cfg.nstep, cfg.discount)
+        prefetcher = None
+        if cfg.prefetch == "on" or (cfg.prefetch == "auto" and device.type == "cuda"):
+            # The loop writes up to update_every steps while the thread samples: keep clear of them.
+            prefetcher = Prefetcher(buffer, cfg.batch_size, sample_rng, device,
+                                    margin=cfg.frame_stack + 2 * cfg.update_every)
         print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
               f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
               f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
@@ -1258,8 +1487,10 @@ def train(cfg: Config, resume_state: dict | None = None):
                 print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
             else:
                 buffer.load(buffer_path)
-            for name in ("train.csv", "eval.csv"):
-                set_aside_rows_after(os.path.join(run_dir, name), step * cfg.action_repeat)
+            set_aside_rows_after(os.path.join(run_dir, "train.csv"), step * cfg.action_repeat)
+            # A snapshot taken at an episode end precedes that frame's evaluation: the resumed run
+            # evaluates again from next_eval on, so rows from there go aside too.
+            set_aside_rows_after(os.path.join(run_dir, "eval.csv"), min(step * cfg.action_repeat, next_eval - 1))
             print(f"resumed at frame {step * cfg.action_repeat}, episode {episode}")
 
         train_log = CsvLog(os.path.join(run_dir, "train.csv"))
@@ -1290,24 +1521,27 @@ def train(cfg: Config, resume_state: dict | None = None):
 
         def run_evaluation():
             nonlocal next_eval, last_eval_frame
-            progress.say(f"evaluating at frame {frame} ({cfg.eval_episodes} episodes)")
+            episodes = len(eval_tasks(eval_env, cfg))
+            progress.say(f"evaluating at frame {frame} ({episodes} episodes)")
             began = time.time()
 
             def show(i, t):
-                done = i / cfg.eval_episodes
-                progress.update(frame, f"eval {i + 1}/{cfg.eval_episodes} step {t}",
+                done = i / episodes
+                progress.update(frame, f"eval {i + 1}/{episodes} step {t}",
                                 progress.eta(frame, next_eval, done, time.time() - began))
 
             # The watch scores what the decoders make of every evaluation frame, and films episode 0.
             watch = EvalWatch(agent, eval_env, os.path.join(run_dir, "videos", f"eval_{frame}.mp4")
                               if cfg.save_video else None)
-            eval_return, eval_success = evaluate(agent, watch, cfg, frame, on_step=show)
+            per_task = {}
+            eval_return, eval_success = evaluate(agent, watch, cfg, frame, on_step=show, per_task=per_task)
             scores = watch.finish()
             progress.eval_seconds.append(time.time() - began)
             row = {"frame": frame, "step": step, "episode": episode, "return": eval_return,
                    "wall_time": round(time.time() - start, 2)}
             if eval_success is not None:
                 row["success"] = eval_success
+            row.update(per_task_columns(per_task))
             row.update(scores)
             eval_log.write(row)
             if writer:
@@ -1352,7 +1586,8 @@ def train(cfg: Config, resume_state: dict | None = None):
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
                     and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-                metrics = agent.update(buffer.sample(cfg.batch_size, sample_rng), step)
+                batch = prefetcher.next() if prefetcher else buffer.sample(cfg.batch_size, sample_rng)
+                metrics = agent.update(batch, step)
                 for k, v in metrics.items():
                     ep_metrics.setdefault(k, []).append(v)
 
@@ -1369,6 +1604,8 @@ def train(cfg: Config, resume_state: dict | None = None):
                 row = {"frame": frame, "step": step, "episode": episode, "return": ep_return, "length": ep_len}
                 if "success" in info:
                     row["success"] = float(ep_success)
+                if "task" in info:  # task sets: which task the episode drew
+                    row["task"] = info["task"]
                 row.update({k: (float(np.mean(ep_metrics[k])) if k in ep_metrics else "")
                             for k in agent.metric_names})
                 row.update({"fps": round(progress.fps, 2), "wall_time": round(time.time() - start, 2)})
@@ -1393,6 +1630,8 @@ def train(cfg: Config, resume_state: dict | None = None):
             run_evaluation()
         snapshot(mid_episode=not need_reset)
         progress.say(f"done: {frame} frames in {time.time() - start:.0f} s; outputs in {run_dir}")
+        if prefetcher:
+            prefetcher.close()
         train_env.close()
         eval_env.close()
         if writer:
@@ -1412,25 +1651,6 @@ def train(cfg: Config, resume_state: dict | None = None):
 # ================================================================================================
 # 9. CLI
 # ================================================================================================
-# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
-# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
-# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
-GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
-
-
-def reexec_with_huge_pages():
-    """On Linux/glibc, restart this process once with transparent huge pages for malloc'd blocks.
-    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) are mapped and unmapped
-    by glibc at every update; with 4 KB pages that is ~1.8M page faults per SEAR update, and
-    huge pages cut the update time by about a third (EXPERIMENTS.md, "Update speed"). glibc reads
-    GLIBC_TUNABLES only at start-up, hence the re-exec. Other platforms ignore the variable."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
-        return
-    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
-    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
-
-
 class OneLineParser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -1438,6 +1658,32 @@ class OneLineParser(argparse.ArgumentParser):
 
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
                      "save_video"}
+
+
+def inherit_from_source(cfg, explicit: set) -> set:
+    """--init-from: the fields that fix the shapes of the copied networks (init_fields) come from the
+    source run's config; given explicitly, they must equal it. Returns the fields taken."""
+    state = load_snapshot(cfg.init_from, "--init-from", mmap=True)
+    source, defaults = state["config"], Config()
+    cfg.init_from = os.path.abspath(cfg.init_from)  # config.json names the source from anywhere
+    taken = set()
+    if "method" not in explicit:  # first: which fields matter depends on the method
+        cfg.method = source["method"]
+        taken.add("method")
+    for name in init_fields(cfg):
+        value = source.get(name, getattr(defaults, name))
+        if name in explicit and getattr(cfg, name) != value:
+            flag = "--" + name.replace("_", "-")
+            raise ConfigError(f"--init-from: the source run has {flag} {value} but this run {getattr(cfg, name)}; "
+                              f"--init-parts {cfg.init_parts} copies networks of that size (leave {flag} out "
+                              f"to take the source's)")
+        if name not in explicit:
+            setattr(cfg, name, value)
+            taken.add(name)
+    frame = state["counters"]["step"] * source.get("action_repeat", 1)
+    print(f"init-from {cfg.init_from} ({source['env']}, frame {frame}): copies {cfg.init_parts}; "
+          + ", ".join(f"{k}={getattr(cfg, k)}" for k in init_fields(cfg)) + " as the source run")
+    return taken
 
 
 def parse_args(argv=None) -> tuple[Config, dict | None]:
@@ -1466,15 +1712,17 @@ def parse_args(argv=None) -> tuple[Config, dict | None]:
             if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
                 raise ConfigError(f"--{k.replace('_', '-')} cannot change on --resume "
                                   f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
-        if "std_frames" in saved and "std_steps" not in saved:  # snapshots from before std counted steps
-            saved["std_steps"] = max(1, saved["std_frames"] // max(1, saved.get("action_repeat") or 1))
-        known = {f.name for f in dataclasses.fields(Config)}
-        cfg = Config(**{**{k: v for k, v in saved.items() if k in known}, **given})
+        cfg = saved_config(saved, given)
         validate(cfg)  # a resumed config was resolved when the run started: no recipe again
     else:
         cfg = Config(**given)
         validate(cfg)
-        changed = apply_recipe(cfg, set(given))
+        explicit = set(given)
+        if "init_parts" in given and not cfg.init_from:
+            raise ConfigError("--init-parts needs --init-from (the run to copy from)")
+        if cfg.init_from:  # the source run fixes the copied networks' sizes; the recipe may not change them
+            explicit |= inherit_from_source(cfg, explicit)
+        changed = apply_recipe(cfg, explicit)
         if changed:
             print(f"recipe {cfg.recipe}: " + "; ".join(changed))
     return cfg, state
@@ -1497,5 +1745,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    reexec_with_huge_pages()
     sys.exit(main())

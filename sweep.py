@@ -118,8 +118,8 @@ GRIDS = {
         doc="noisy / approximate masks, rgbm, no split, c1/c2 on 3 Meta-World tasks"),
 }
 # Named so that asking for them gives a clear answer instead of "unknown grid".
-NOT_YET = {"transfer": "multi-task pre-training and transfer (the paper's MT10 study) need sear.py "
-                       "support that does not exist yet"}
+NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) are two "
+                       "dependent stages; run them with sear.py as EXPERIMENTS.md, 'Multi-task and transfer', shows"}
 
 
 # ================================================================================================

@@ -1,56 +1,211 @@
-"""Agent benchmark: replay bytes per transition and update speed of every method, in one run.
+"""Agent benchmark, every number measured in one run of this script: the machine's GEMM peaks, the
+replay footprint, each method's update (FLOPs, s/update, achieved GFLOP/s, share of peak) in fp32
+and bf16, the split of a training step into env / act / sample / update, and optionally the official
+DrQ-v2 update timed against this project's drq update in the same process.
 
-    python benchmarks/bench_agent.py                  # batch 256, every method
-    python benchmarks/bench_agent.py --batch-size 64 --methods sear drq --updates 5
+    python benchmarks/bench_agent.py                                  # batch 256, drq and sear, fp32 and bf16
+    python benchmarks/bench_agent.py --methods drq sear ae mae curl --updates 5
+    python benchmarks/bench_agent.py --official /path/to/facebookresearch/drqv2 --rounds 7
+    python benchmarks/bench_agent.py --compare-allocators             # glibc default vs sear.py's tunables
 
-Synthetic batches (no rendering), so the numbers are the learner's cost alone. Prints a markdown
-table; the ratio column is relative to drq measured in the same run.
+Synthetic batches (no rendering) for the update table, so those are the learner's cost alone. Times
+are wall clock at the thread count shown; on a shared machine, compare ratios taken in the same run.
 """
 import argparse
 import os
+import resource
 import subprocess
 import sys
 import time
+import types
 
 import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import sear  # noqa: E402
 
 
-def replay_footprint(action_dims=(6, 4, 9, 28)):
-    rows = []
-    for a in action_dims:
-        buf = sear.ReplayBuffer(1, (3, 84, 84), a, frame_stack=3, nstep=3, discount=0.99)
-        rows.append((a, buf.bytes_per_transition))
-    return rows
+def gemm_gflops(dtype, n=2048, reps=6):
+    """Square matmul throughput: the peak the convolutions are measured against."""
+    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
+    a @ b
+    start = time.perf_counter()
+    for _ in range(reps):
+        a @ b
+    return 2 * n ** 3 * reps / (time.perf_counter() - start) / 1e9
 
 
-def updates_per_second(method, batch_size, updates, action_dim=6, device="cpu"):
-    cfg = sear.Config(method=method, batch_size=batch_size, action_repeat=2)
-    agent = sear.Agent(cfg, action_dim, torch.device(device))
-    rng = np.random.default_rng(0)
+def fake_batch(batch_size, action_dim=6, seed=0):
+    rng = np.random.default_rng(seed)
     n = batch_size
-    batch = (rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8), rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8),
-             rng.uniform(-1, 1, (n, action_dim)).astype(np.float32), rng.normal(size=(n, 1)).astype(np.float32),
-             np.full((n, 1), 0.99 ** 3, np.float32), rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8),
-             rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8))
-    agent.update(batch, step=5_000)  # warm-up (allocator, kernels)
+    return (rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8), rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8),
+            rng.uniform(-1, 1, (n, action_dim)).astype(np.float32), rng.normal(size=(n, 1)).astype(np.float32),
+            np.full((n, 1), 0.99 ** 3, np.float32), rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8),
+            rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8))
+
+
+def make_agent(method, precision, batch_size, device="cpu", action_dim=6):
+    cfg = sear.Config(method=method, batch_size=batch_size, action_repeat=2, precision=precision)
+    return sear.Agent(cfg, action_dim, torch.device(device))
+
+
+def time_updates(agent, batch, updates):
+    agent.update(batch, step=5_000)  # warm-up: allocator, oneDNN kernel selection
     start = time.perf_counter()
     for _ in range(updates):
         agent.update(batch, step=5_000)
-    return updates / (time.perf_counter() - start)
+    if agent.device.type == "cuda":
+        torch.cuda.synchronize()
+    return (time.perf_counter() - start) / updates
+
+
+def update_flops(agent, batch):
+    with FlopCounterMode(display=False) as counter:
+        agent.update(batch, step=5_000)
+    return counter.get_total_flops()
+
+
+def peak_rss_gb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # KB on Linux
+
+
+def update_table(args, peaks):
+    batch = fake_batch(args.batch_size)
+    print(f"## Updates at batch {args.batch_size} on {args.device} ({torch.get_num_threads()} threads), "
+          f"{args.updates} timed updates each\n")
+    print("| method | precision | GFLOP/update | s/update | GFLOP/s | share of GEMM peak | peak RSS so far |")
+    print("|---|---|---|---|---|---|---|")
+    results = {}
+    for precision in args.precisions:
+        for method in args.methods:
+            agent = make_agent(method, precision, args.batch_size, args.device)
+            flops = update_flops(agent, batch)
+            seconds = time_updates(agent, batch, args.updates)
+            results[method, precision] = (flops, seconds)
+            rate = flops / seconds / 1e9
+            print(f"| {method} | {precision} | {flops / 1e9:.1f} | {seconds:.3f} | {rate:.0f} | "
+                  f"{100 * rate / peaks[precision]:.0f}% | {peak_rss_gb():.2f} GB |", flush=True)
+            del agent
+    if "drq" in args.methods:
+        print("\n| method | precision | time ratio to drq | FLOP ratio to drq | time ratio / FLOP ratio |")
+        print("|---|---|---|---|---|")
+        for (method, precision), (flops, seconds) in results.items():
+            if method != "drq":
+                f0, s0 = results["drq", precision]
+                print(f"| {method} | {precision} | {seconds / s0:.2f} | {flops / f0:.2f} | "
+                      f"{(seconds / s0) / (flops / f0):.2f} |")
+    print()
+
+
+def step_split(args):
+    """One real training step, part by part: env.step, agent.act, replay sample, agent.update
+    (an update every `update_every` steps, as in training; the table gives the per-step share)."""
+    cfg = sear.Config(env=args.env, method=args.split_method, batch_size=args.batch_size, precision=args.precisions[0],
+                      render_quality="fast", replay_size=2_000)
+    train_env, eval_env = sear.make_envs(cfg)
+    eval_env.close()
+    agent = sear.Agent(cfg, train_env.action_space.shape[0], torch.device(args.device))
+    buffer = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), train_env.action_space.shape[0], cfg.frame_stack,
+                               cfg.nstep, cfg.discount)
+    rng = np.random.default_rng(0)
+    obs, _ = train_env.reset(seed=0)
+    buffer.add_first(obs)
+    times = {"env": [], "act": [], "sample": [], "update": []}
+    for step in range(args.split_steps + 300):
+        t0 = time.perf_counter()
+        action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
+        t1 = time.perf_counter()
+        obs, reward, terminated, truncated, _ = train_env.step(action)
+        buffer.add(action, reward, terminated, obs)
+        if terminated or truncated:
+            obs, _ = train_env.reset(seed=step)
+            buffer.add_first(obs)
+        t2 = time.perf_counter()
+        if step >= 300:  # the first 300 steps only fill the buffer
+            times["act"].append(t1 - t0)
+            times["env"].append(t2 - t1)
+            if step % cfg.update_every == 0:
+                t3 = time.perf_counter()
+                batch = buffer.sample(cfg.batch_size, rng)
+                t4 = time.perf_counter()
+                agent.update(batch, step)
+                t5 = time.perf_counter()
+                times["sample"].append(t4 - t3)
+                times["update"].append(t5 - t4)
+    train_env.close()
+    per_step = {k: sum(v) / args.split_steps for k, v in times.items()}
+    total = sum(per_step.values())
+    print(f"## One training step on {args.env} ({args.split_method}, batch {args.batch_size}, "
+          f"{args.precisions[0]}, fast render, update every {cfg.update_every} steps; {args.split_steps} steps)\n")
+    print("| part | ms per step | share |\n|---|---|---|")
+    for k, v in per_step.items():
+        print(f"| {k} | {1000 * v:.1f} | {100 * v / total:.1f}% |")
+    print(f"| total | {1000 * total:.1f} | |\n")
+
+
+def load_official(path):
+    """The official DrQ-v2 agent from a checkout of facebookresearch/drqv2 (bring it with any git
+    client; it is not part of this project). Its modules import hydra and omegaconf for config
+    plumbing the agent does not use: stand-ins are registered when they are not installed."""
+    for name in ("hydra", "omegaconf"):
+        try:
+            __import__(name)
+        except ImportError:
+            stub = types.ModuleType(name)
+            stub.OmegaConf = None
+            sys.modules[name] = stub
+    sys.path.insert(0, os.path.abspath(path))
+    import drqv2
+    return drqv2
+
+
+def official_comparison(args):
+    """The official update and this project's drq update, alternating in one process on the same
+    batch (same settings: batch, lr 1e-4, feature 50, hidden 1024, tau 0.01, clip 0.3)."""
+    drqv2 = load_official(args.official)
+    device = torch.device(args.device)
+    theirs = drqv2.DrQV2Agent((9, 84, 84), (6,), device, lr=1e-4, feature_dim=50, hidden_dim=1024,
+                              critic_target_tau=0.01, num_expl_steps=2000, update_every_steps=2,
+                              stddev_schedule="linear(1.0,0.1,500000)", stddev_clip=0.3, use_tb=False)
+    ours = make_agent("drq", "fp32", args.batch_size, args.device)
+    batch = fake_batch(args.batch_size)
+    official_batch = (batch[0], batch[2], batch[3], batch[4], batch[5])  # obs, action, reward, discount, next_obs
+
+    def time_theirs():
+        replay = iter(lambda: official_batch, None)
+        theirs.update(replay, 4_000)  # warm-up
+        start = time.perf_counter()
+        for _ in range(args.updates):
+            theirs.update(replay, 4_000)  # step % update_every == 0: every call updates
+        return (time.perf_counter() - start) / args.updates
+
+    rows = []
+    for r in range(args.rounds):
+        cpu0 = time.process_time()
+        t_theirs = time_theirs()
+        cpu1 = time.process_time()
+        t_ours = time_updates(ours, batch, args.updates)
+        cpu2 = time.process_time()
+        rows.append((t_theirs, t_ours, (cpu1 - cpu0), (cpu2 - cpu1)))
+    ratios = np.array([t / o for t, o, _, _ in rows])
+    print(f"## Official DrQ-v2 update vs this project's drq update (batch {args.batch_size}, fp32, "
+          f"{torch.get_num_threads()} threads, alternating, {args.rounds} rounds x {args.updates} updates)\n")
+    print("| round | official s/update | ours s/update | official / ours (>1: ours faster) |\n|---|---|---|---|")
+    for i, (t, o, _, _) in enumerate(rows):
+        print(f"| {i + 1} | {t:.3f} | {o:.3f} | {t / o:.2f} |")
+    print(f"\nmedian official/ours {np.median(ratios):.2f}, range {ratios.min():.2f}-{ratios.max():.2f}\n")
 
 
 def compare_allocators(args):
-    """SEAR and DrQ update time with glibc's default pages and with sear.py's huge-page setting,
-    each measured in a fresh process (glibc reads GLIBC_TUNABLES only at start-up)."""
-    print(f"## glibc allocator: default vs huge pages (batch {args.batch_size})\n")
-    print("| method | default s/update | hugetlb=1 s/update | speed-up |\n|---|---|---|---|")
+    """drq and sear update time with glibc's default allocator and with sear.py's tunables, each in
+    a fresh process (glibc reads GLIBC_TUNABLES only at start-up)."""
+    print(f"## glibc allocator: default vs sear.py's GLIBC_MALLOC (batch {args.batch_size})\n")
+    print("| method | default s/update | tuned s/update | speed-up |\n|---|---|---|---|")
     for m in args.methods:
         times = []
-        for tunables in ("glibc.malloc.hugetlb=0", "glibc.malloc.hugetlb=1"):
+        for tunables in ("glibc.malloc.hugetlb=0", ":".join(sear.GLIBC_MALLOC)):
             out = subprocess.run([sys.executable, os.path.abspath(__file__), "--batch-size", str(args.batch_size),
                                   "--updates", str(args.updates), "--methods", m, "--device", args.device,
                                   "--updates-only"], env={**os.environ, "GLIBC_TUNABLES": tunables},
@@ -62,32 +217,43 @@ def compare_allocators(args):
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch-size", type=int, default=256)
-    p.add_argument("--updates", type=int, default=3)
-    p.add_argument("--methods", nargs="+", default=list(sear.METHODS))
+    p.add_argument("--updates", type=int, default=3, help="timed updates per measurement")
+    p.add_argument("--methods", nargs="+", default=["drq", "sear"], choices=list(sear.METHODS))
+    p.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: sear.py's default)")
+    p.add_argument("--env", default="walker-walk", help="env of the training-step split")
+    p.add_argument("--split-method", default="sear", choices=list(sear.METHODS))
+    p.add_argument("--split-steps", type=int, default=40, help="timed training steps of the split (0: skip)")
+    p.add_argument("--official", metavar="DIR", help="a checkout of facebookresearch/drqv2 to time against")
+    p.add_argument("--rounds", type=int, default=5, help="alternating rounds of the official comparison")
     p.add_argument("--compare-allocators", action="store_true",
-                   help="time each method with glibc's default pages and with huge pages")
+                   help="time each method with glibc's default allocator and with sear.py's tunables")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
+    torch.set_num_threads(args.threads or sear.default_threads())
     if args.compare_allocators:
         return compare_allocators(args)
     if args.updates_only:  # one method, one number: the child process of --compare-allocators
-        print(1 / updates_per_second(args.methods[0], args.batch_size, args.updates, device=args.device))
+        agent = make_agent(args.methods[0], "fp32", args.batch_size, args.device)
+        print(time_updates(agent, fake_batch(args.batch_size), args.updates))
         return
 
-    print("## Replay buffer footprint\n\n| action dim | bytes / transition | KB | 1M transitions |\n|---|---|---|---|")
-    for a, b in replay_footprint():
-        print(f"| {a} | {b} | {b / 1000:.2f} | {b * 1e6 / 2**30:.1f} GiB |")
-    print(f"\n(official drqv2 stores 63.5 KB per step)\n\n## Updates/s at batch {args.batch_size} on "
-          f"{args.device} ({torch.get_num_threads()} threads), {args.updates} timed updates each\n")
-    print("| method | updates/s | s/update | relative to drq |\n|---|---|---|---|")
-    results = {}
-    for m in (["drq"] + [m for m in args.methods if m != "drq"]) if "drq" in args.methods else args.methods:
-        results[m] = updates_per_second(m, args.batch_size, args.updates, device=args.device)
-        rel = f"{results[m] / results['drq']:.2f}x" if "drq" in results else "-"
-        print(f"| {m} | {results[m]:.3f} | {1 / results[m]:.2f} | {rel} |", flush=True)
+    peaks = {"fp32": gemm_gflops(torch.float32), "bf16": gemm_gflops(torch.bfloat16)}
+    print(f"## Machine\n\n{os.cpu_count()} cores, {torch.get_num_threads()} torch threads; GEMM 2048^3: "
+          f"fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s\n")
+    print("## Replay buffer footprint\n\n| action dim | bytes / transition | 1M transitions |\n|---|---|---|")
+    for a in (6, 4, 9, 28):
+        b = sear.ReplayBuffer(1, (3, 84, 84), a, frame_stack=3, nstep=3, discount=0.99).bytes_per_transition
+        print(f"| {a} | {b} | {b * 1e6 / 2**30:.1f} GiB |")
+    print("\n(official drqv2 stores 63.5 KB per step)\n")
+    update_table(args, peaks)
+    if args.split_steps:
+        step_split(args)
+    if args.official:
+        official_comparison(args)
 
 
 if __name__ == "__main__":
-    sear.reexec_with_huge_pages()  # the setting sear.py trains with (see --compare-allocators)
+    sear.reexec_with_huge_pages()  # the allocator sear.py trains with (see --compare-allocators)
     main()

@@ -7,6 +7,10 @@ seconds (this process and its children: ffmpeg) next to wall seconds: on a share
 wall clock measures the neighbours as much as the evaluation, CPU time much less so.
 
     MUJOCO_GL=egl python benchmarks/bench_inspect.py runs/<run dir> [--episodes 2] [--threads 1]
+        [--max-episode-steps 0]
+
+The snapshot's weights do not matter for the cost, only its network sizes: a run of a few frames
+at the default sizes will do (its own --max-episode-steps is replaced by this one's).
 """
 from __future__ import annotations
 
@@ -38,11 +42,12 @@ def main() -> None:
     parser.add_argument("run_dir")
     parser.add_argument("--episodes", type=int, default=2, help="evaluation episodes per timing")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--max-episode-steps", type=int, default=0, help="0 = the suite's own episode length")
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
     cfg, state = plot.load_snapshot_run(args.run_dir)
-    cfg.eval_episodes = args.episodes
+    cfg.eval_episodes, cfg.max_episode_steps = args.episodes, args.max_episode_steps
     _, env = sear.make_envs(cfg)
     agent = plot.trained_agent(cfg, state, env.action_space.shape[0])
     frame = state["counters"]["step"] * cfg.action_repeat
@@ -72,6 +77,7 @@ def main() -> None:
     print("| variant | CPU s | CPU ms per observation | extra CPU over plain | wall s |\n|---|---|---|---|---|")
     for name, cpu, wall in rows:
         print(f"| {name} | {cpu:.1f} | {1000 * cpu / observations:.1f} | {cpu - rows[0][1]:+.1f} s | {wall:.1f} |")
+
 
 if __name__ == "__main__":
     main()

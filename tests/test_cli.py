@@ -301,3 +301,32 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     assert seen["act"] == list(range(first, last + 1))
     assert seen["update"] and seen["update"][0] >= first and seen["update"][-1] <= last
     assert all(s % cfg.update_every == 0 for s in seen["update"])
+
+
+def test_prefetch_on_cpu_trains(tmp_path):
+    """--prefetch on (CUDA's default) runs the same loop with the sampler in a background thread."""
+    r = run(["--env", "cup-catch", "--method", "sear", "--prefetch", "on", "--threads", "1", *TINY], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    train = rows(only_run_dir(tmp_path) / "train.csv")
+    assert train[-1]["critic_loss"] != "" and train[-1]["mask_loss"] != ""
+
+
+def test_resume_from_a_snapshot_before_its_frames_evaluation_evaluates_once(tmp_path):
+    """A snapshot at an episode end precedes that frame's evaluation. If the run died after the
+    evaluation's row was written, the resumed run evaluates that frame again: the old row goes to the
+    side file, so eval.csv has every frame once."""
+    import torch
+    tiny = [*TINY, "--eval-every", "16"]  # evaluations at the episode ends (8 steps x action repeat 2)
+    r = run(["--env", "walker-walk", "--method", "drq", *tiny], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    run_dir = only_run_dir(tmp_path)
+    assert [int(x["frame"]) for x in rows(run_dir / "eval.csv")] == [0, 16, 32, 48]
+    snap = torch.load(run_dir / "snapshot.pt", weights_only=False)
+    # As if killed after the snapshot at the frame-16 episode end and the frame-16 evaluation's row:
+    snap["counters"].update(step=8, episode=1, next_eval=16, last_eval_frame=0, mid_episode=False)
+    torch.save(snap, run_dir / "snapshot.pt")
+    r = run(["--resume", str(run_dir)], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert [int(x["frame"]) for x in rows(run_dir / "eval.csv")] == [0, 16, 32, 48]
+    side = list(run_dir.glob("eval.after_snapshot_*.csv"))
+    assert len(side) == 1 and [int(x["frame"]) for x in rows(side[0])] == [16, 32, 48]

@@ -125,7 +125,8 @@ def test_env_names_and_action_repeat():
     names = envs.env_names()
     for n in ALL:
         assert n in names
-    assert len([n for n in names if n.startswith("metaworld-")]) == 50
+    assert len([n for n in names if n.startswith("metaworld-")]) == 50 + 3   # MT1 tasks, task sets
+    assert {"metaworld-mt3", "metaworld-mt10", "metaworld-mt50", "kitchen-multitask"} <= set(names)
     assert "metaworld-hammer" in names and "metaworld-door-open-v3" not in names
     assert envs.default_action_repeat("walker-walk") == 2
     assert envs.default_action_repeat("walker-walk-distracting") == 2

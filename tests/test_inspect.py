@@ -106,6 +106,7 @@ def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores,
         while not watch.step(np.zeros(2))[3]:
             pass
     assert set(watch.finish()) == scores
+    assert all(len(v) == 2 for v in watch.values.values())  # every 10th observation: 0 and 10 of 12
     with imageio.get_reader(tmp_path / "videos" / "eval_0.mp4") as reader:
         frames = [frame for frame in reader]
     assert len(frames) == 6 and frames[0].shape == (16 + 336, panels * 336, 3)
@@ -188,4 +189,20 @@ def test_plot_maps_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, ma
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and message in err and "Traceback" not in err, err
     assert err.startswith("plot.py maps: error: ")
+    assert tree_digest(tmp_path) == before
+
+
+def test_plot_maps_refuses_runs_on_different_envs(tmp_path, capsys):
+    """Maps compare channels on the same frames: runs on two envs are refused before anything is built."""
+    dirs = []
+    for env in ("walker-walk", "cheetah-run"):
+        run_dir = tmp_path / env
+        run_dir.mkdir()
+        (run_dir / "config.json").write_text("{}")
+        torch.save({"config": {"env": env}, "agent": {}}, run_dir / "snapshot.pt")
+        dirs.append(str(run_dir))
+    before = tree_digest(tmp_path)
+    code = plot.main(["maps", *dirs, "--out", str(tmp_path / "maps.png")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "is on cheetah-run" in err and "same frames" in err, err
     assert tree_digest(tmp_path) == before

@@ -187,7 +187,8 @@ def test_nothing_left_to_draw_is_one_line_exit_2(runs, tmp_path, capsys):
     assert code == 2 and "first episode" in err and "has written train.csv" in err
 
 
-@pytest.mark.parametrize("breakage", ["empty eval", "header only", "unknown metric", "bad flag", "no such path"])
+@pytest.mark.parametrize("breakage", ["empty eval", "header only", "unknown metric", "bad flag", "no such path",
+                                      "bad baseline"])
 def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, breakage):
     eval_csv = next(runs.iterdir()) / "eval.csv"
     argv = [runs, "--out", tmp_path / "x.png"]
@@ -201,10 +202,24 @@ def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, breakage):
         argv += ["--colour", "red"]
     elif breakage == "no such path":
         argv[0] = tmp_path / "nope"
+    elif breakage == "bad baseline":
+        argv += ["--baseline", "random"]
     code, _, err = run_main(capsys, *argv)
     assert code == 2
     assert err.count("\n") == 1 and err.startswith("plot.py: error:"), err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_baseline_is_drawn_as_a_labelled_line(runs, tmp_path, capsys, monkeypatch):
+    import matplotlib.axes
+    drawn = []
+    real = matplotlib.axes.Axes.axhline
+    monkeypatch.setattr(matplotlib.axes.Axes, "axhline",
+                        lambda ax, y=0, *a, **k: drawn.append((y, k.get("label"))) or real(ax, y, *a, **k))
+    code, _, err = run_main(capsys, runs, "--out", tmp_path / "x.png", "--baseline", "1.6:random policy")
+    assert code == 0, err
+    assert drawn == [(1.6, "random policy")]
+    assert (tmp_path / "x.png").read_bytes().startswith(PNG_MAGIC)
 
 
 def test_refuses_to_overwrite_without_force(runs, tmp_path, capsys):

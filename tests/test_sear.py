@@ -273,3 +273,23 @@ def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     assert (explicit.nstep, explicit.recon_coef, explicit.batch_size) == (3, 0.5, 512)  # flags win
     with pytest.raises(sear.ConfigError, match="--recipe"):
         sear.parse_args(["--recipe", "mine"])
+
+
+def test_prefetcher_delivers_the_batches_direct_sampling_would():
+    """The background sampler draws from the same RNG in the same order (CPU: no pinned copy)."""
+    buf = sear.ReplayBuffer(100, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    rng = np.random.default_rng(0)
+    for ep in range(3):
+        buf.add_first({"pixels": rng.integers(0, 256, (9, 84, 84), dtype=np.uint8),
+                       "mask": rng.integers(0, 2, (3, 84, 84), dtype=np.uint8)})
+        for _ in range(20):
+            buf.add(rng.uniform(-1, 1, 2), rng.normal(), False,
+                    {"pixels": rng.integers(0, 256, (9, 84, 84), dtype=np.uint8),
+                     "mask": rng.integers(0, 2, (3, 84, 84), dtype=np.uint8)})
+    direct = [buf.sample(8, r, margin=4) for r in [np.random.default_rng(5)] for _ in range(3)]
+    pre = sear.Prefetcher(buf, 8, np.random.default_rng(5), torch.device("cpu"), margin=4)
+    fetched = [pre.next() for _ in range(3)]
+    pre.close()
+    assert not pre.thread.is_alive()
+    for d, f in zip(direct, fetched):
+        assert all(np.array_equal(x, y.numpy()) for x, y in zip(d, f))

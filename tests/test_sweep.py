@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # test needs time between the first snapshot (frame 20) and the end of the run to stop it there.
 TINY = ["--frames", "60", "--seed-frames", "20", "--eval-every", "20", "--eval-episodes", "1",
         "--max-episode-steps", "10", "--batch-size", "4", "--latent-dim", "64", "--hidden-dim", "32",
-        "--feature-dim", "8", "--replay-size", "1000", "--render-quality", "fast"]
+        "--feature-dim", "8", "--replay-size", "1000", "--render-quality", "fast",
+        "--snapshot-minutes", "0"]  # a snapshot at every episode end: the kill test needs an early one
 
 
 def column(path, name):
@@ -145,7 +146,7 @@ def test_local_sweep_killed_midway_then_rerun_finishes_without_duplicates(tmp_pa
     for d in jobs:
         runs = list((d / "run").iterdir())
         assert (d / "DONE").exists() and len(runs) == 1, d  # exactly one run per key
-        assert column(runs[0] / "eval.csv", "frame") == [0, 20, 40], d  # no evaluation twice
+        assert column(runs[0] / "eval.csv", "frame") == [0, 20, 40, 60], d  # no evaluation twice; the last at the end
         frames = column(runs[0] / "train.csv", "frame")
         assert frames == sorted(set(frames)) and frames[-1] == 60, d
         assert attempts(d) == (2 if d == first else 1), d
