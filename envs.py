@@ -17,6 +17,11 @@ This module gives every suite used in the paper one Gymnasium-style interface:
   A solved Kitchen task also ends as a truncation (the authors bootstrap there).
 * ``info["success"]`` exists for the suites that define success (Meta-World,
   Kitchen, Adroit).
+* ``make_env(mask_model=f)`` takes the mask from ``f`` (uint8 RGB (3, size, size)
+  -> bool (size, size), e.g. segment.py's learned model) instead of the
+  simulator; ``obs["mask"]`` is then ``f``'s, and the simulator's mask, if
+  rendered at all (``render_mask=True``), only appears as ``info["true_mask"]``
+  (newest frame, before noise / approximation), for measuring ``f``.
 * Task sets (``metaworld-mt3``, ``-mt10``, ``-mt50``) draw a task uniformly and
   one of its variations at every reset, from the reset seed; the agent sees
   pixels only, ``info["task"]`` names the task (reset and every step),
@@ -35,7 +40,8 @@ rendered at 3x the observation size, cleaned with a binary opening and
 downsampled by a 3x3 majority vote (``mask_downsample="stride"`` keeps every
 3rd pixel as the authors did).  dm_control masks are rendered at the
 observation size directly.  ``mask_noise`` and ``mask_approx`` corrupt the mask
-for the paper's robustness ablations.
+for the paper's robustness ablations, whichever its source (simulator or
+``mask_model``).
 
 All suites render through one path: a ``mujoco.Renderer`` on the suite's raw
 MjModel/MjData (RGB plus segmentation), so camera, shadow and multisampling
@@ -781,7 +787,7 @@ class SEAREnv(gym.Env):
 
     def __init__(self, backend, *, name: str, seed: int, frame_stack: int, action_repeat: int,
                  size: int, mask_noise: float, mask_approx: bool, mask_downsample: str,
-                 render_quality: str, render_mask: bool = True,
+                 render_quality: str, render_mask: bool = True, mask_model=None,
                  distractions_kwargs: dict | None = None):
         self.name = name
         self.backend = backend
@@ -792,8 +798,11 @@ class SEAREnv(gym.Env):
         self.mask_noise, self.mask_approx, self.mask_downsample = mask_noise, mask_approx, mask_downsample
         self.mask_scale = backend.mask_scale
         self.render_quality = render_quality
-        # False: skip segmentation, obs["mask"] is all zeros (mask-free baselines).
+        # False: skip segmentation, obs["mask"] is all zeros (mask-free baselines) or mask_model's.
         self.render_mask = render_mask
+        # A callable RGB (3, H, W) -> bool (H, W) mask that replaces the simulator's in obs["mask"].
+        self.mask_model = mask_model
+        self.segmentation_renders = 0   # counted: a learned-mask run proves it never renders one
         self._rgb_renderer = self._seg_renderer = None
         self._bind_model()
 
@@ -866,6 +875,7 @@ class SEAREnv(gym.Env):
 
     def segmentation(self) -> np.ndarray:
         """Raw segmentation (H, W, 2) int32 at mask resolution, camera orientation."""
+        self.segmentation_renders += 1
         r = self._seg_renderer
         r.enable_segmentation_rendering()
         try:
@@ -875,13 +885,24 @@ class SEAREnv(gym.Env):
             r.disable_segmentation_rendering()
 
     def _render(self):
+        """(RGB (3, size, size), mask (size, size), simulator's clean mask or None). The mask is the
+        simulator's, or mask_model's prediction on this RGB frame; either way corrupted afterwards
+        by --mask-approx / --mask-noise. With a mask_model the simulator's mask is rendered only if
+        render_mask, and only returned third (for info["true_mask"]), never as the mask."""
         r = self._rgb_renderer
         r.update_scene(self.data, camera=self.backend.camera)
         rgb = r.render()
-        mask = self._mask() if self.render_mask else np.zeros((self.size, self.size), bool)
         if self.backend.flip:
             rgb = rgb[::-1, ::-1]
-        return np.ascontiguousarray(rgb.transpose(2, 0, 1)), mask
+        rgb = np.ascontiguousarray(rgb.transpose(2, 0, 1))
+        true = self.clean_mask() if self.render_mask else None
+        if self.mask_model is not None:
+            mask = self._corrupt(np.asarray(self.mask_model(rgb), dtype=bool))
+        elif true is not None:
+            mask, true = self._corrupt(true), None
+        else:
+            mask = np.zeros((self.size, self.size), bool)
+        return rgb, mask, true
 
     def clean_mask(self) -> np.ndarray:
         """Current robot mask (size, size) bool before noise / approximation."""
@@ -894,8 +915,8 @@ class SEAREnv(gym.Env):
             mask = mask[::-1, ::-1]
         return mask
 
-    def _mask(self) -> np.ndarray:
-        mask = self.clean_mask()
+    def _corrupt(self, mask: np.ndarray) -> np.ndarray:
+        """The paper's robustness ablations, applied to the mask whatever its source."""
         if self.mask_approx:
             mask = _approximate_mask(mask)
         if self.mask_noise > 0:
@@ -932,15 +953,19 @@ class SEAREnv(gym.Env):
             # it into the model; our renderers hold their own GPU copy (without
             # this upload the first episode showed the XML's flat floor).
             self._upload(hfields=range(self.model.nhfield))
-        rgb, mask = self._render()
+        rgb, mask, true = self._render()
         for _ in range(self.frame_stack):
             self._frames.append(rgb)
             self._masks.append(mask)
         self._needs_reset = False
-        return self._obs(), self._task_info()
+        return self._obs(), {**self._task_info(), **self._true_mask_info(true)}
 
     def _task_info(self) -> dict:
         return {"task": self.backend.task} if self.tasks else {}
+
+    @staticmethod
+    def _true_mask_info(true) -> dict:
+        return {} if true is None else {"true_mask": true}
 
     def step(self, action):
         if self._needs_reset:
@@ -956,8 +981,8 @@ class SEAREnv(gym.Env):
                 break
         if self.backend.has_success:
             info = {**info, "success": success}
-        info = {**info, **self._task_info()}
-        rgb, mask = self._render()
+        rgb, mask, true = self._render()
+        info = {**info, **self._task_info(), **self._true_mask_info(true)}
         self._frames.append(rgb)
         self._masks.append(mask)
         self._needs_reset = terminated or truncated
@@ -978,7 +1003,8 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
              render_quality: str = "paper", split: str = "train",
              mask_downsample: str = "majority", camera_distraction: float = 0.0,
              color_distraction: float = 0.0, render_mask: bool = True,
-             variation_seed: int | None = None, kitchen_camera: str = "fixed") -> SEAREnv:
+             variation_seed: int | None = None, kitchen_camera: str = "fixed",
+             mask_model=None) -> SEAREnv:
     """Build a SEAR pixel env.  See the module docstring for the contract.
 
     ``backgrounds``/``difficulty``/``split``/``camera_distraction``/
@@ -989,6 +1015,10 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     ``mask_downsample``: "majority" (default) or "stride" (the authors').
     ``render_mask=False`` skips the segmentation render (obs["mask"] is then
     all zeros), for mask-free baselines.
+    ``mask_model``: a callable uint8 RGB (3, size, size) -> bool (size, size)
+    that gives obs["mask"] instead of the simulator (a learned segmentation
+    model, segment.py); the simulator's mask is then rendered only with
+    ``render_mask=True`` and only reported as ``info["true_mask"]``.
     ``variation_seed`` (Meta-World only; defaults to ``seed``) seeds the MT1
     benchmark (MT10, MT50 for those sets) whose 50 variations per task the
     resets sample from: give the train and the eval env the same value so both
@@ -1036,7 +1066,7 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     return SEAREnv(backend, name=name, seed=seed, frame_stack=frame_stack,
                    action_repeat=action_repeat, size=size, mask_noise=mask_noise,
                    mask_approx=mask_approx, mask_downsample=mask_downsample,
-                   render_quality=render_quality, render_mask=render_mask,
+                   render_quality=render_quality, render_mask=render_mask, mask_model=mask_model,
                    distractions_kwargs=distractions_kwargs)
 
 

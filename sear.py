@@ -69,6 +69,8 @@ import torch  # noqa: E402
 import torch.nn as nn  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
+import segment  # noqa: E402  (the learned mask source; it imports envs only when collecting frames)
+
 
 # ================================================================================================
 # 1. Config
@@ -111,6 +113,12 @@ class Config:
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
     mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
     mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')")
+    mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
+                                  "applied to every frame gives every mask target and RGBM's input mask; "
+                                  "--mask-noise / --mask-approx then corrupt its masks)")
+    learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's mask in evaluation "
+                                       "episodes only to report the learned masks' IoU (eval.csv learned_mask_iou), "
+                                       "never as a target; --no-learned-mask-iou never renders one")
     backgrounds: str = arg("", "Distracting Control: folder of images or DAVIS JPEGImages/480p ('' = built-in)")
     difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all backgrounds (authors: medium)")
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)")
@@ -244,6 +252,12 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"--difficulty must be easy, medium or hard, got '{cfg.difficulty}'")
     if cfg.mask_downsample not in ("majority", "stride"):
         raise ConfigError(f"--mask-downsample must be majority or stride, got '{cfg.mask_downsample}'")
+    if cfg.mask_source != "sim" and not (cfg.mask_source.startswith("learned:") and cfg.mask_source[8:]):
+        raise ConfigError(f"--mask-source must be sim or learned:PATH (a segment.py model file), got "
+                          f"'{cfg.mask_source}'")
+    if cfg.mask_source != "sim" and not METHODS[cfg.method].uses_mask:
+        raise ConfigError(f"--mask-source {cfg.mask_source} is for methods that use the robot mask "
+                          f"({', '.join(m for m in METHODS if METHODS[m].uses_mask)}), not {cfg.method}")
     if cfg.precision not in ("fp32", "bf16"):
         raise ConfigError(f"--precision must be fp32 or bf16, got '{cfg.precision}'")
     if not cfg.snapshot_minutes >= 0:
@@ -1187,23 +1201,44 @@ def episode_seed(seed, episode):
     return seed * 1_000_003 + episode
 
 
+def load_mask_model(cfg: Config):
+    """The learned mask source of --mask-source learned:PATH (None for sim); a missing or damaged
+    file is a ConfigError, raised before any run directory exists."""
+    if cfg.mask_source == "sim":
+        return None
+    try:
+        return segment.load_model(cfg.mask_source[len("learned:"):])
+    except segment.SegmentError as e:
+        raise ConfigError(f"--mask-source: {e}") from None
+
+
 def make_envs(cfg: Config):
+    """The train and the eval env. With a learned mask source, obs["mask"] is the model's prediction
+    on each frame (envs.make_env(mask_model=)): the train env never renders the simulator's mask, the
+    eval env renders it only for the learned_mask_iou metric (info["true_mask"], which nothing
+    stores or trains on)."""
     import envs  # imported here so that `--help` and config errors need no MuJoCo
-    train_env, eval_env = make_run_env(cfg, "train"), make_run_env(cfg, "eval")
+    mask_model = load_mask_model(cfg)
+    train_env, eval_env = make_run_env(cfg, "train", mask_model), make_run_env(cfg, "eval", mask_model)
     cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
+    if mask_model is not None and cfg.learned_mask_iou:
+        eval_env = segment.LearnedMaskIoU(eval_env)
     return train_env, eval_env
 
 
-def make_run_env(cfg: Config, split: str, **overrides):
+def make_run_env(cfg: Config, split: str, mask_model=None, **overrides):
     """The run's train or eval env, as its config describes it; `overrides` replace make_env
-    arguments (plot.py maps: clean masks, rendered for every method)."""
+    arguments (plot.py maps: clean masks, rendered for every method). With a learned mask model
+    the simulator's mask is rendered only in the eval env and only for --learned-mask-iou."""
     import envs
+    uses_mask = METHODS[cfg.method].uses_mask
+    render_mask = uses_mask and (mask_model is None or (split == "eval" and cfg.learned_mask_iou))
     kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None, mask_noise=cfg.mask_noise,
                   mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
                   difficulty=cfg.difficulty, render_quality=cfg.render_quality,
                   mask_downsample=cfg.mask_downsample, camera_distraction=cfg.camera_distraction,
-                  color_distraction=cfg.color_distraction, render_mask=METHODS[cfg.method].uses_mask,
-                  kitchen_camera=cfg.kitchen_camera) | overrides
+                  color_distraction=cfg.color_distraction, render_mask=render_mask,
+                  kitchen_camera=cfg.kitchen_camera, mask_model=mask_model) | overrides
     # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
     # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
     seed = cfg.seed + (100_000 if split == "eval" else 0)
@@ -1469,6 +1504,10 @@ def train(cfg: Config, resume_state: dict | None = None):
         print(f"run dir: {run_dir}\nmethod {cfg.method} on {cfg.env} | device {device} | action repeat "
               f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
               f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
+        if cfg.mask_source != "sim":
+            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the simulator's mask "
+                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
+                     else "is never rendered)"))
 
         step, episode, next_eval, last_eval_frame, wall_offset = 0, 0, 0, -1, 0.0
         if resume_state is not None:
@@ -1543,6 +1582,8 @@ def train(cfg: Config, resume_state: dict | None = None):
                 row["success"] = eval_success
             row.update(per_task_columns(per_task))
             row.update(scores)
+            if isinstance(eval_env, segment.LearnedMaskIoU):  # the mask model's IoU on these episodes' frames
+                row["learned_mask_iou"] = scores["learned_mask_iou"] = eval_env.pop()
             eval_log.write(row)
             if writer:
                 writer.add_scalar("eval/return", eval_return, frame)
@@ -1717,6 +1758,8 @@ def parse_args(argv=None) -> tuple[Config, dict | None]:
     else:
         cfg = Config(**given)
         validate(cfg)
+        if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
+            cfg.mask_source = "learned:" + os.path.abspath(cfg.mask_source[len("learned:"):])
         explicit = set(given)
         if "init_parts" in given and not cfg.init_from:
             raise ConfigError("--init-parts needs --init-from (the run to copy from)")
