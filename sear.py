@@ -662,7 +662,8 @@ class Agent:
             if net is not None:
                 net.to(memory_format=torch.channels_last)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
-        self.metric_names = ("critic_loss", "actor_loss", "q") + (self.aux.metric_names if self.aux else ())
+        self.metric_names = (("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread")
+                             + (self.aux.metric_names if self.aux else ()))
 
     def conv_precision(self):
         """bf16 autocast for the convolutional networks under --precision bf16; a no-op for fp32."""
@@ -738,7 +739,12 @@ class Agent:
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_opt.step()
-        return {"actor_loss": actor_loss.item()}
+        # The failure of short DDPG runs, made visible: an actor whose mean action no longer depends
+        # on the state (spread 0) and sits where float32's tanh is exactly +-1, so 1 - tanh^2 = 0 and
+        # no gradient can bring it back (EXPERIMENTS.md, rung 2).
+        mu = dist.mean.detach()
+        return {"actor_loss": actor_loss.item(), "actor_saturated": (mu.abs() == 1.0).float().mean().item(),
+                "action_spread": mu.std(0, correction=0).mean().item()}
 
     def update(self, batch, step):
         obs, mask, action, reward, discount, next_obs, next_mask = (
@@ -1031,10 +1037,12 @@ def new_run_dir(cfg: Config) -> str:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     base = os.path.join(cfg.run_root, f"{cfg.env}__{cfg.method}__{cfg.seed}__{stamp}")
     path, k = base, 1
-    while os.path.exists(path):  # never reuse (and so never overwrite) an existing run
-        path, k = f"{base}-{k}", k + 1
-    os.makedirs(path)
-    return path
+    while True:  # never reuse (and so never overwrite) an existing run, even one made this second
+        try:
+            os.makedirs(path)
+            return path
+        except FileExistsError:
+            path, k = f"{base}-{k}", k + 1
 
 
 def rng_state():

@@ -81,7 +81,7 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     evals = rows(run_dir / "eval.csv")
     assert [int(r["frame"]) for r in evals] == [0, 24, 48]  # the last one: the end of the budget
     assert [int(r["frame"]) for r in train] == [16, 32, 48]  # 8-step episodes, action repeat 2
-    assert {"return", "critic_loss", "actor_loss", "recon_loss", "mask_loss", "fps", "wall_time"} <= set(train[0])
+    assert {"return", "critic_loss", "actor_loss", "actor_saturated", "action_spread", "recon_loss", "mask_loss", "fps", "wall_time"} <= set(train[0])
     assert train[-1]["mask_loss"] != ""  # learning happened after the seed frames
     assert json.loads((run_dir / "config.json").read_text())["action_repeat"] == 2
     assert "snapshot at frame" not in r.stdout  # evaluations do not trigger snapshots: the clock does
@@ -330,3 +330,17 @@ def test_resume_from_a_snapshot_before_its_frames_evaluation_evaluates_once(tmp_
     assert [int(x["frame"]) for x in rows(run_dir / "eval.csv")] == [0, 16, 32, 48]
     side = list(run_dir.glob("eval.after_snapshot_*.csv"))
     assert len(side) == 1 and [int(x["frame"]) for x in rows(side[0])] == [16, 32, 48]
+
+
+def test_runs_started_in_the_same_second_get_their_own_run_dirs(tmp_path, monkeypatch):
+    """Two seeds-alike runs launched together: the second must not crash on the first's directory,
+    even when the other process creates it between a check and the mkdir (the race is simulated)."""
+    sys.path.insert(0, str(ROOT))
+    import sear
+    cfg = sear.Config(env="walker-stand", run_root=str(tmp_path))
+    monkeypatch.setattr(sear.time, "strftime", lambda fmt: "20261123-000000")
+    first = sear.new_run_dir(cfg)
+    monkeypatch.setattr(sear.os.path, "exists", lambda p: False)  # the other process wins the race
+    second = sear.new_run_dir(cfg)
+    third = sear.new_run_dir(cfg)
+    assert len({first, second, third}) == 3 and all(os.path.isdir(p) for p in (first, second, third))

@@ -101,6 +101,22 @@ def test_actor_loss_does_not_reach_encoder():
     assert any(p.grad is not None for p in agent.actor.parameters())
 
 
+def test_actor_metrics_show_a_saturated_state_independent_actor():
+    """actor_saturated counts action dims where float32 tanh is exactly +-1 (zero gradient);
+    action_spread is the std of the mean action over the batch (0: the same action in every state)."""
+    cfg = small_cfg()
+    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    latent = torch.randn(8, agent.encoder.repr_dim)
+    fresh = agent.update_actor(latent, step=0)
+    assert fresh["actor_saturated"] == 0.0 and fresh["action_spread"] > 0.0
+    with torch.no_grad():  # a last layer pushed past tanh's float32 range, as in EXPERIMENTS rung 2
+        agent.actor.policy[-1].weight.zero_()
+        agent.actor.policy[-1].bias.copy_(torch.tensor([12.0, -12.0]))
+    stuck = agent.update_actor(latent, step=0)
+    assert stuck["actor_saturated"] == 1.0 and stuck["action_spread"] == 0.0
+    assert all(p.grad is None or not p.grad.any() for p in agent.actor.policy.parameters())
+
+
 def test_critic_and_aux_losses_reach_encoder():
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
