@@ -735,7 +735,14 @@ class Agent:
         """DDPG actor loss. `latent` is detached: the actor's loss never reaches the encoder."""
         dist = self.actor(latent, linear_std(self.cfg, step))
         action = dist.sample(clip=self.cfg.std_clip)
-        actor_loss = -torch.min(*self.critic(latent, action)).mean()
+        # Nor does it reach the critic's weights: DrQ-v2 computes their gradient here and the next
+        # critic step discards it; frozen, the backward pass skips those GEMMs (the actor's gradient
+        # is the same).
+        self.critic.requires_grad_(False)
+        try:
+            actor_loss = -torch.min(*self.critic(latent, action)).mean()
+        finally:
+            self.critic.requires_grad_(True)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_opt.step()

@@ -117,6 +117,27 @@ def test_actor_metrics_show_a_saturated_state_independent_actor():
     assert all(p.grad is None or not p.grad.any() for p in agent.actor.policy.parameters())
 
 
+def test_actor_update_leaves_the_critic_without_gradients_and_takes_drqv2s_step():
+    """The critic is frozen during the actor's step: no gradient lands on it, it stays trainable,
+    and the actor's gradient is the one DrQ-v2 computes with the critic's weights requiring grad."""
+    cfg = small_cfg()
+    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    latent = torch.randn(8, agent.encoder.repr_dim)
+    torch.manual_seed(1)
+    dist = agent.actor(latent, 0.5)
+    (-torch.min(*agent.critic(latent, dist.sample(clip=cfg.std_clip))).mean()).backward()
+    expected = [p.grad.clone() for p in agent.actor.parameters()]
+    assert all(p.grad is not None for p in agent.critic.parameters())  # what DrQ-v2 computes, then drops
+    agent.critic.zero_grad(set_to_none=True)
+    agent.actor_opt.step = lambda: None  # keep the weights, look at the gradient
+    torch.manual_seed(1)
+    agent.cfg.std_start = 0.5  # linear_std at step 0: the std used above
+    agent.update_actor(latent, step=0)
+    for e, p in zip(expected, agent.actor.parameters()):
+        torch.testing.assert_close(p.grad, e)
+    assert all(p.grad is None and p.requires_grad for p in agent.critic.parameters())
+
+
 def test_critic_and_aux_losses_reach_encoder():
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
