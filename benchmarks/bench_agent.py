@@ -7,6 +7,7 @@ DrQ-v2 update timed against this project's drq update in the same process.
     python benchmarks/bench_agent.py --methods drq sear ae mae curl --updates 5
     python benchmarks/bench_agent.py --official /path/to/facebookresearch/drqv2 --rounds 7
     python benchmarks/bench_agent.py --compare-allocators             # glibc default vs sear.py's tunables
+    python benchmarks/bench_agent.py --breakdown --split-steps 0      # + time and GFLOP/s per op class
 
 Synthetic batches (no rendering) for the update table, so those are the learner's cost alone. Times
 are wall clock at the thread count shown; on a shared machine, compare ratios taken in the same run.
@@ -96,6 +97,55 @@ def update_table(args, peaks):
                 f0, s0 = results["drq", precision]
                 print(f"| {method} | {precision} | {seconds / s0:.2f} | {flops / f0:.2f} | "
                       f"{(seconds / s0) / (flops / f0):.2f} |")
+    print()
+
+
+# The ops that carry an update's FLOPs, by the names FlopCounterMode and the profiler give them.
+FLOP_OPS = {"convolution": "conv forward", "convolution_backward": "conv backward",
+            "mm": "matmul", "addmm": "matmul", "bmm": "matmul"}
+
+
+def op_breakdown(args, peaks):
+    """Where an update's time goes: per op class, its FLOPs (FlopCounterMode) and wall time (the
+    profiler's inclusive CPU time of that op on the calling thread), and the rest (memory-bound ops:
+    shift, ReLU, layout copies, optimiser, losses). The last column bounds what the update can reach
+    with the rest at zero: the FLOP ops' own speed."""
+    batch = fake_batch(args.batch_size)
+    print(f"## Where an update's time goes (batch {args.batch_size}, {torch.get_num_threads()} threads, one profiled update)\n")
+    print("| method | precision | op class | GFLOP | seconds | GFLOP/s | share of GEMM peak |")
+    print("|---|---|---|---|---|---|---|")
+    for precision in args.precisions:
+        for method in args.methods:
+            agent = make_agent(method, precision, args.batch_size, args.device)
+            with FlopCounterMode(display=False) as counter:
+                agent.update(batch, step=5_000)
+            flops = {}
+            for op, n in counter.get_flop_counts()["Global"].items():
+                name = FLOP_OPS.get(str(op).split(".")[-1])
+                if name:
+                    flops[name] = flops.get(name, 0) + n
+            time_updates(agent, batch, 1)  # warm
+            with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+                start = time.perf_counter()
+                agent.update(batch, step=5_000)
+                total = time.perf_counter() - start
+            seconds = {}
+            for event in prof.key_averages():
+                name = FLOP_OPS.get(event.key.removeprefix("aten::"))
+                if name:
+                    seconds[name] = seconds.get(name, 0) + event.cpu_time_total / 1e6
+            peak = peaks[precision]
+            for name in ("conv forward", "conv backward", "matmul"):
+                f, t = flops.get(name, 0), seconds.get(name, 0)
+                if t:
+                    print(f"| {method} | {precision} | {name} | {f / 1e9:.1f} | {t:.3f} | {f / t / 1e9:.0f} | "
+                          f"{100 * f / t / 1e9 / peak:.0f}% |")
+            f_all, t_ops = sum(flops.values()), sum(seconds.values())
+            print(f"| {method} | {precision} | everything else | 0 | {total - t_ops:.3f} | | |")
+            print(f"| {method} | {precision} | **update (profiled)** | {f_all / 1e9:.1f} | {total:.3f} | "
+                  f"{f_all / total / 1e9:.0f} | {100 * f_all / total / 1e9 / peak:.0f}% "
+                  f"(FLOP ops alone: {100 * f_all / t_ops / 1e9 / peak:.0f}%) |", flush=True)
+            del agent
     print()
 
 
@@ -227,6 +277,8 @@ def main():
     p.add_argument("--split-steps", type=int, default=40, help="timed training steps of the split (0: skip)")
     p.add_argument("--official", metavar="DIR", help="a checkout of facebookresearch/drqv2 to time against")
     p.add_argument("--rounds", type=int, default=5, help="alternating rounds of the official comparison")
+    p.add_argument("--breakdown", action="store_true",
+                   help="profile one update per method and precision: time and GFLOP/s per op class")
     p.add_argument("--compare-allocators", action="store_true",
                    help="time each method with glibc's default allocator and with sear.py's tunables")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
@@ -248,6 +300,8 @@ def main():
         print(f"| {a} | {b} | {b * 1e6 / 2**30:.1f} GiB |")
     print("\n(official drqv2 stores 63.5 KB per step)\n")
     update_table(args, peaks)
+    if args.breakdown:
+        op_breakdown(args, peaks)
     if args.split_steps:
         step_split(args)
     if args.official:
