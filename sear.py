@@ -750,8 +750,9 @@ class Agent:
         # on the state (spread 0) and sits where float32's tanh is exactly +-1, so 1 - tanh^2 = 0 and
         # no gradient can bring it back (EXPERIMENTS.md, rung 2).
         mu = dist.mean.detach()
-        return {"actor_loss": actor_loss.item(), "actor_saturated": (mu.abs() == 1.0).float().mean().item(),
-                "action_spread": mu.std(0, correction=0).mean().item()}
+        values = torch.stack([actor_loss.detach(), (mu.abs() == 1.0).float().mean(),
+                              mu.std(0, correction=0).mean()]).tolist()  # one device sync, not three
+        return dict(zip(("actor_loss", "actor_saturated", "action_spread"), values))
 
     def update(self, batch, step):
         obs, mask, action, reward, discount, next_obs, next_mask = (

@@ -8,6 +8,7 @@ DrQ-v2 update timed against this project's drq update in the same process.
     python benchmarks/bench_agent.py --official /path/to/facebookresearch/drqv2 --rounds 7
     python benchmarks/bench_agent.py --compare-allocators             # glibc default vs sear.py's tunables
     python benchmarks/bench_agent.py --breakdown --split-steps 0      # + time and GFLOP/s per op class
+    python benchmarks/bench_agent.py --compare-layouts --rounds 3 --updates 2   # channels_last vs NCHW
 
 Synthetic batches (no rendering) for the update table, so those are the learner's cost alone. Times
 are wall clock at the thread count shown; on a shared machine, compare ratios taken in the same run.
@@ -248,6 +249,26 @@ def official_comparison(args):
     print(f"\nmedian official/ours {np.median(ratios):.2f}, range {ratios.min():.2f}-{ratios.max():.2f}\n")
 
 
+def compare_layouts(args):
+    """Each method's update with the encoder and decoders in channels_last (as sear.py) and set back
+    to NCHW, alternating in this process on the same batch."""
+    batch = fake_batch(args.batch_size)
+    print(f"## Layout: NCHW vs channels_last (batch {args.batch_size}, {torch.get_num_threads()} threads, "
+          f"{args.rounds} alternating rounds x {args.updates} updates, median)\n")
+    print("| method | precision | channels_last s/update | NCHW s/update | NCHW / channels_last |\n|---|---|---|---|---|")
+    for precision in args.precisions:
+        for method in args.methods:
+            ours, nchw = (make_agent(method, precision, args.batch_size, args.device) for _ in range(2))
+            for net in (nchw.encoder, nchw.aux):
+                if net is not None:
+                    net.to(memory_format=torch.contiguous_format)
+            times = np.array([(time_updates(ours, batch, args.updates), time_updates(nchw, batch, args.updates))
+                              for _ in range(args.rounds)])
+            cl, nc = np.median(times, axis=0)
+            print(f"| {method} | {precision} | {cl:.3f} | {nc:.3f} | {nc / cl:.2f} |", flush=True)
+    print()
+
+
 def compare_allocators(args):
     """drq and sear update time with glibc's default allocator and with sear.py's tunables, each in
     a fresh process (glibc reads GLIBC_TUNABLES only at start-up)."""
@@ -281,11 +302,15 @@ def main():
                    help="profile one update per method and precision: time and GFLOP/s per op class")
     p.add_argument("--compare-allocators", action="store_true",
                    help="time each method with glibc's default allocator and with sear.py's tunables")
+    p.add_argument("--compare-layouts", action="store_true",
+                   help="time each method with the conv nets in channels_last (sear.py) and in NCHW, alternating")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     torch.set_num_threads(args.threads or sear.default_threads())
     if args.compare_allocators:
         return compare_allocators(args)
+    if args.compare_layouts:
+        return compare_layouts(args)
     if args.updates_only:  # one method, one number: the child process of --compare-allocators
         agent = make_agent(args.methods[0], "fp32", args.batch_size, args.device)
         print(time_updates(agent, fake_batch(args.batch_size), args.updates))
