@@ -232,37 +232,40 @@ ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; 
 
 def load_snapshot_run(run_dir: str):
     """(sear.Config, snapshot) of a run directory; PlotError for anything that is not one."""
+    import cli
     import sear
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
         raise PlotError(f"{run_dir} is not a run directory (no config.json)")
     try:
-        state = sear.load_snapshot(run_dir, flag="")
-        return sear.saved_config(state["config"]), state
-    except sear.ConfigError as e:
+        state = cli.load_snapshot(run_dir, flag="")
+        return cli.split_config(state["config"], sear.Config)[0], state
+    except cli.ConfigError as e:
         raise PlotError(str(e)) from None
     except (KeyError, TypeError) as e:  # a torch file, but not a sear.py snapshot
         raise PlotError(f"{run_dir}/snapshot.pt is not a sear.py snapshot ({type(e).__name__}: "
-                        f"{sear.first_sentence(e)})") from None
+                        f"{cli.first_sentence(e)})") from None
 
 
 def trained_agent(cfg, state, action_dim: int):
     import torch
+    import cli
     import sear
     agent = sear.Agent(cfg, action_dim, torch.device("cpu"))
     try:
         agent.load_state_dict(state["agent"])
     except (KeyError, RuntimeError) as e:
-        raise PlotError(f"snapshot does not fit its config's networks: {sear.first_sentence(e)}") from None
+        raise PlotError(f"snapshot does not fit its config's networks: {cli.first_sentence(e)}") from None
     return agent
 
 
 def open_env(cfg):
     """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
     clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
-    import sear
+    import cli
+    import experiment
     try:
-        return sear.make_run_env(cfg, "eval", mask_noise=0.0, mask_approx=False, render_mask=True)
-    except sear.ConfigError as e:
+        return experiment.make_run_env(cfg, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
+    except cli.ConfigError as e:
         raise PlotError(str(e)) from None
 
 
@@ -270,13 +273,13 @@ def map_frames(env, cfg, agent, n: int):
     """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart, from the reset of the
     run's first evaluation episode (its seed, its task), acting with `agent`'s mean action; and the
     steps they were at (counted on across episodes, should one end first)."""
-    import sear
-    tasks = sear.eval_tasks(env, cfg)
+    import experiment
+    tasks = experiment.eval_tasks(env, cfg)
 
     def reset(i):
         task = tasks[i % len(tasks)]
         options = None if task is None else {"task": task}
-        return env.reset(seed=sear.episode_seed(cfg.seed + 100_000, i), options=options)[0]
+        return env.reset(seed=experiment.episode_seed(cfg.seed + 100_000, i), options=options)[0]
 
     episode, t, pixels, masks, steps = 0, 0, [], [], []
     obs = reset(episode)
@@ -432,9 +435,9 @@ def maps_main(argv) -> int:
             if (cfg.env, cfg.frame_stack) != (first.env, first.frame_stack):
                 raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), {loaded[0][0]} on "
                                 f"{first.env} (frame stack {first.frame_stack}): maps compare runs on the same frames")
-        import sear
+        import cli
         import torch
-        torch.set_num_threads(sear.default_threads())
+        torch.set_num_threads(cli.default_threads())
         env = open_env(first)
         agents = [trained_agent(cfg, state, env.action_space.shape[0]) for _, cfg, state in loaded]
         # The frames: the first run's env, config and policy; every run sees exactly these.

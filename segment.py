@@ -22,7 +22,7 @@ the sizes needed to rebuild the network, and how it was trained.
     python segment.py train --folder my_labels/ --out my.pt
     python segment.py export --env metaworld-door-open --labels 100 --out my_labels/
 
-Layering: this file imports envs.py (only to collect frames); sear.py imports this file; envs.py
+Layering: this file imports envs.py (only to collect frames); experiment.py imports this file; envs.py
 knows nothing of it (make_env takes any callable as ``mask_model``).
 """
 from __future__ import annotations

@@ -45,6 +45,7 @@ import socket
 import subprocess
 import sys
 import time
+import types
 from dataclasses import dataclass
 
 import submitit
@@ -177,14 +178,9 @@ def parse_names(tokens: list[str]) -> tuple[str, ...]:
 
 def sear_flag_names() -> set[str]:
     """Every flag sear.py's parser has: one per Config field, plus --no-X for booleans."""
+    import cli
     import sear
-    names = set()
-    for f in dataclasses.fields(sear.Config):
-        flag = "--" + f.name.replace("_", "-")
-        names.add(flag)
-        if f.type in ("bool", bool):
-            names.add("--no-" + flag[2:])
-    return names
+    return cli.flag_names(sear.Config)
 
 
 def check_passthrough(tokens: list[str]) -> None:
@@ -203,33 +199,35 @@ def check_passthrough(tokens: list[str]) -> None:
 
 def sear_config(argv: list[str], what: str):
     """sear.py's own parser and checks on argv (nothing is created), and the env name by envs.py."""
+    import cli
     import envs
     import sear
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):  # argparse prints its one-line error, then exits
-            cfg, _ = sear.parse_args(argv)
+            cfg, run, _ = cli.parse_args(argv, sear.Config, sear.METHODS)
         envs.default_action_repeat(cfg.env)    # unknown env names fail here, not hours later
     except SystemExit:
         raise SweepError(f"sear.py rejects {what}: {err.getvalue().strip().removeprefix('sear.py: error: ')}")
-    except (sear.ConfigError, envs.EnvError) as e:
+    except (cli.ConfigError, envs.EnvError) as e:
         raise SweepError(f"sear.py rejects {what}: {e}")
-    return cfg
+    return types.SimpleNamespace(**cli.config_dict(cfg, run))  # every setting, as config.json has them
 
 
 def config_key(cfg) -> str:
     """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys alone."""
+    import cli
     import sear
-    defaults = dataclasses.asdict(sear.Config())
-    diff = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in UNKEYED and v != defaults[k]}
+    defaults = cli.config_dict(sear.Config(), cli.RunConfig())
+    diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
     return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
 
 
 def resume_flags(cfg) -> tuple[str, ...]:
-    """The config values a resume may change (sear.RESUME_MAY_CHANGE), as flags."""
-    import sear
+    """The config values a resume may change (cli.RESUME_MAY_CHANGE), as flags."""
+    import cli
     flags = []
-    for name in sorted(sear.RESUME_MAY_CHANGE - {"resume"}):
+    for name in sorted(cli.RESUME_MAY_CHANGE - {"resume"}):
         flag, value = "--" + name.replace("_", "-"), getattr(cfg, name)
         if isinstance(value, bool):
             flags.append(flag if value else "--no-" + flag[2:])

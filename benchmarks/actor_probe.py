@@ -16,6 +16,7 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import cli  # noqa: E402
 import sear  # noqa: E402
 
 seen = []
@@ -34,5 +35,5 @@ def forward(self, latent, std):
 
 if __name__ == "__main__":
     sear.Actor.forward = forward
-    cfg, _ = sear.parse_args(sys.argv[1:])
-    sear.train(cfg)
+    cfg, run, _ = cli.parse_args(sys.argv[1:], sear.Config, sear.METHODS)
+    sear.train(cfg, run)

@@ -26,6 +26,8 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import cli  # noqa: E402
+import experiment  # noqa: E402
 import sear  # noqa: E402
 
 
@@ -155,7 +157,7 @@ def step_split(args):
     (an update every `update_every` steps, as in training; the table gives the per-step share)."""
     cfg = sear.Config(env=args.env, method=args.split_method, batch_size=args.batch_size, precision=args.precisions[0],
                       render_quality="fast", replay_size=2_000)
-    train_env, eval_env = sear.make_envs(cfg)
+    train_env, eval_env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
     agent = sear.Agent(cfg, train_env.action_space.shape[0], torch.device(args.device))
     buffer = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), train_env.action_space.shape[0], cfg.frame_stack,
@@ -276,7 +278,7 @@ def compare_allocators(args):
     print("| method | default s/update | tuned s/update | speed-up |\n|---|---|---|---|")
     for m in args.methods:
         times = []
-        for tunables in ("glibc.malloc.hugetlb=0", ":".join(sear.GLIBC_MALLOC)):
+        for tunables in ("glibc.malloc.hugetlb=0", ":".join(cli.GLIBC_MALLOC)):
             out = subprocess.run([sys.executable, os.path.abspath(__file__), "--batch-size", str(args.batch_size),
                                   "--updates", str(args.updates), "--methods", m, "--device", args.device,
                                   "--updates-only"], env={**os.environ, "GLIBC_TUNABLES": tunables},
@@ -306,7 +308,7 @@ def main():
                    help="time each method with the conv nets in channels_last (sear.py) and in NCHW, alternating")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
-    torch.set_num_threads(args.threads or sear.default_threads())
+    torch.set_num_threads(args.threads or cli.default_threads())
     if args.compare_allocators:
         return compare_allocators(args)
     if args.compare_layouts:
@@ -334,5 +336,5 @@ def main():
 
 
 if __name__ == "__main__":
-    sear.reexec_with_huge_pages()  # the allocator sear.py trains with (see --compare-allocators)
+    cli.reexec_with_huge_pages()  # the allocator sear.py trains with (see --compare-allocators)
     main()

@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 import plot  # noqa: E402
+import experiment  # noqa: E402
 import sear  # noqa: E402
 
 
@@ -48,15 +49,15 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     cfg, state = plot.load_snapshot_run(args.run_dir)
     cfg.eval_episodes, cfg.max_episode_steps = args.episodes, args.max_episode_steps
-    _, env = sear.make_envs(cfg)
+    _, env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     agent = plot.trained_agent(cfg, state, env.action_space.shape[0])
-    frame = state["counters"]["step"] * cfg.action_repeat
+    step = state["counters"]["step"]
     with tempfile.TemporaryDirectory() as tmp:
         video = os.path.join(tmp, "eval.mp4")
         variants = [("plain evaluation", lambda: (env, None)),
-                    ("+ metrics (EvalWatch)", lambda: (sear.EvalWatch(agent, env), None)),
-                    ("+ metrics + --save-video", lambda: (sear.EvalWatch(agent, env, video), video))]
-        warm_up = sear.EvalWatch(agent, env)  # first render, first encoder and decoder passes
+                    ("+ metrics (EvalWatch)", lambda: (experiment.EvalWatch(agent, env), None)),
+                    ("+ metrics + --save-video", lambda: (experiment.EvalWatch(agent, env, video), video))]
+        warm_up = experiment.EvalWatch(agent, env)  # first render, first encoder and decoder passes
         warm_up.reset(seed=0)
         warm_up.finish()
         rows = []
@@ -64,7 +65,7 @@ def main() -> None:
             watched, path = make()
             steps = []
             began, cpu = time.perf_counter(), cpu_seconds()
-            sear.evaluate(agent, watched, cfg, frame, on_step=lambda episode, t: steps.append(t))
+            sear.evaluate(agent, watched, cfg, step, on_step=lambda episode, t: steps.append(t))
             if watched is not env:
                 watched.finish()  # waits for ffmpeg, so its CPU time is counted
             rows.append((name, cpu_seconds() - cpu, time.perf_counter() - began))

@@ -21,13 +21,15 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import cli  # noqa: E402
+import experiment  # noqa: E402
 import sear  # noqa: E402
 
 
 def batches_from_env(env_name, n_batches, batch_size, seed=0):
     """Real frames: random-action episodes of `env_name` in a replay buffer, then fixed samples."""
     cfg = sear.Config(env=env_name, render_quality="fast", replay_size=4_000)
-    train_env, eval_env = sear.make_envs(cfg)
+    train_env, eval_env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
     adim = train_env.action_space.shape[0]
     buf = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), adim, cfg.frame_stack, cfg.nstep, cfg.discount)
@@ -56,9 +58,9 @@ def random_batches(n_batches, batch_size, adim=6, seed=0):
 
 def joint_grads(agent, batch, seed):
     """Eq. 6's gradient on (encoder, critic, decoders) for one batch, with a fixed RNG."""
-    obs, mask, action, reward, discount, next_obs, next_mask = (torch.as_tensor(x) for x in batch)
+    batch = sear.Batch._make(torch.as_tensor(x).float() for x in batch)
     torch.manual_seed(seed)
-    loss, _, _ = agent.joint_loss(obs.float(), mask.float(), action, reward, discount, next_obs.float(), step=5_000)
+    loss, _, _ = agent.joint_loss(batch, step=5_000)
     agent.model_opt.zero_grad(set_to_none=True)
     loss.backward()
     enc = torch.cat([p.grad.flatten() for p in agent.encoder.parameters()])
@@ -78,7 +80,7 @@ def main():
     p.add_argument("--env", default="cup-catch", help="real frames from this env ('' = random pixels)")
     p.add_argument("--threads", type=int, default=0)
     args = p.parse_args()
-    torch.set_num_threads(args.threads or sear.default_threads())
+    torch.set_num_threads(args.threads or cli.default_threads())
     batches, adim = (batches_from_env(args.env, 16, args.batch_size) if args.env
                      else random_batches(16, args.batch_size))
     torch.manual_seed(0)
@@ -116,5 +118,5 @@ def main():
 
 
 if __name__ == "__main__":
-    sear.reexec_with_huge_pages()
+    cli.reexec_with_huge_pages()
     main()

@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
+import experiment  # noqa: E402
 import sear  # noqa: E402
 
 
@@ -34,11 +35,11 @@ def main() -> None:
 
     cfg = sear.Config(env=args.env, action_repeat=args.action_repeat, seed=args.seed, method="drq",
                       render_quality=args.render_quality)
-    _, env = sear.make_envs(cfg)  # the eval env: the run's evaluation seeds and settings
+    _, env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)  # the eval env: the run's evaluation seeds and settings
     rng = np.random.default_rng(args.seed)
     returns = []
     for i in range(args.episodes):
-        env.reset(seed=sear.episode_seed(cfg.seed + 100_000, i))
+        env.reset(seed=experiment.episode_seed(cfg.seed + 100_000, i))
         done, ret = False, 0.0
         while not done:
             _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))

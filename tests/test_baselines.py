@@ -88,7 +88,8 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels():
     assert torch.all(patches.amax(dim=(2, 4)) == patches.amin(dim=(2, 4)))
 
     cfg = tiny_cfg("mae")
-    aux = sear.MAEAux(cfg, cfg.latent_dim)
+    encoder = sear.PooledEncoder(9, cfg.latent_dim)
+    aux = sear.MAEAux(cfg, encoder)
     obs = torch.full((4, 9, 84, 84), 255.0)  # target +0.5 everywhere
 
     class Grey(torch.nn.Module):  # predicts 0 everywhere: squared error 0.25 on every pixel
@@ -96,7 +97,6 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels():
             return torch.zeros_like(obs)
 
     aux.recon_decoder = Grey()
-    encoder = sear.PooledEncoder(9, cfg.latent_dim)
     _, m = aux(encoder, None, obs, obs, None)
     assert m["recon_loss"] == pytest.approx(0.25 * 9 * 37 * 144)  # hidden pixels only, 9 channels
 

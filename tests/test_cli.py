@@ -111,7 +111,7 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--frames", "ten"], "invalid int value"),
     (["--resume", "does/not/exist"], "no such run directory"),
     (["--env", "walker-walk-distracting", "--backgrounds", "does/not/exist"], "does not exist"),
-    (["--mask-downsample", "every-other"], "--mask-downsample must be"),
+    (["--mask-downsample", "every-other"], "argument --mask-downsample: invalid choice: 'every-other'"),
     (["--snapshot-minutes", "-1"], "--snapshot-minutes must be >= 0"),
 ])
 def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
@@ -175,14 +175,14 @@ def test_interrupt_between_episodes_writes_a_snapshot(tmp_path):
     """Ctrl-C while the loop sits between episodes (here: while the first snapshot is being
     written) saves that exact state; a deterministic stand-in for a well-timed SIGINT."""
     driver = (
-        "import sys, sear\n"
-        "real, calls = sear.save_snapshot, []\n"
+        "import sys, experiment, sear\n"
+        "real, calls = experiment.save_snapshot, []\n"
         "def ctrl_c_once(run_dir, payload):\n"
         "    calls.append(payload['counters']['step'])\n"
         "    if len(calls) == 1:\n"
         "        raise KeyboardInterrupt\n"
         "    real(run_dir, payload)\n"
-        "sear.save_snapshot = ctrl_c_once\n"
+        "experiment.save_snapshot = ctrl_c_once\n"
         "sys.exit(sear.main(sys.argv[1:]))\n")
     r = subprocess.run([sys.executable, "-c", driver, "--run-root", str(tmp_path / "runs"), "--env", "walker-walk",
                         *TINY, "--frames", "1000", "--snapshot-minutes", "0"],
@@ -220,8 +220,8 @@ def test_evaluation_shows_which_episode_it_is_on(tmp_path):
 
 
 def test_progress_speed_and_eta_count_training_and_evaluations_apart(capsys):
-    import sear
-    p = sear.Progress(total=1000, every=0, eval_every=100)
+    import experiment
+    p = experiment.Progress(total=1000, every=0, eval_every=100)
     p.fps = 10.0
     assert p.eta(500, next_eval=600) == float("inf")  # no evaluation timed yet
     assert p.eta(500, next_eval=600, eval_done=0.5, eval_spent=2.0) == 50 + (4 + 1 - 0.5) * 4.0
@@ -286,6 +286,7 @@ def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
 @pytest.mark.parametrize("action_repeat", [1, 2])
 def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action_repeat):
     """The std schedule, exploration phase and updates see the agent step (frame / action repeat)."""
+    import cli
     import sear
     seen = {"act": [], "update": []}
     act, update = sear.Agent.act, sear.Agent.update
@@ -293,9 +294,10 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
         None if eval_mode else seen["act"].append(step), act(self, p, m, step, eval_mode))[1])
     monkeypatch.setattr(sear.Agent, "update", lambda self, batch, step: (
         seen["update"].append(step), update(self, batch, step))[1])
-    cfg, _ = sear.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat", str(action_repeat),
-                              "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY])
-    sear.train(cfg)
+    cfg, run, _ = cli.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat",
+                                  str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY],
+                                 sear.Config, sear.METHODS)
+    sear.train(cfg, run)
     first = cfg.seed_frames // action_repeat  # the first step after the random seed phase
     last = cfg.frames // action_repeat - 1
     assert seen["act"] == list(range(first, last + 1))
@@ -336,11 +338,10 @@ def test_runs_started_in_the_same_second_get_their_own_run_dirs(tmp_path, monkey
     """Two seeds-alike runs launched together: the second must not crash on the first's directory,
     even when the other process creates it between a check and the mkdir (the race is simulated)."""
     sys.path.insert(0, str(ROOT))
-    import sear
-    cfg = sear.Config(env="walker-stand", run_root=str(tmp_path))
-    monkeypatch.setattr(sear.time, "strftime", lambda fmt: "20261123-000000")
-    first = sear.new_run_dir(cfg)
-    monkeypatch.setattr(sear.os.path, "exists", lambda p: False)  # the other process wins the race
-    second = sear.new_run_dir(cfg)
-    third = sear.new_run_dir(cfg)
+    import experiment
+    monkeypatch.setattr(experiment.time, "strftime", lambda fmt: "20261123-000000")
+    first = experiment.new_run_dir(str(tmp_path), "walker-stand__sear__1")
+    monkeypatch.setattr(experiment.os.path, "exists", lambda p: False)  # the other process wins the race
+    second = experiment.new_run_dir(str(tmp_path), "walker-stand__sear__1")
+    third = experiment.new_run_dir(str(tmp_path), "walker-stand__sear__1")
     assert len({first, second, third}) == 3 and all(os.path.isdir(p) for p in (first, second, third))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import experiment
 import plot
 import sear
 from tests.test_cli import ROOT, TINY, rows, run, tree_digest
@@ -33,18 +34,18 @@ def tiny_runs(tmp_path_factory):
 def test_mask_iou_is_one_for_a_perfect_prediction_and_zero_for_an_empty_one():
     true = torch.zeros(3, 84, 84, dtype=torch.bool)
     true[:, 20:40, 30:50] = True
-    assert sear.mask_iou(true, true).tolist() == [1.0, 1.0, 1.0]
-    assert sear.mask_iou(torch.zeros_like(true), true).tolist() == [0.0, 0.0, 0.0]
+    assert experiment.mask_iou(true, true).tolist() == [1.0, 1.0, 1.0]
+    assert experiment.mask_iou(torch.zeros_like(true), true).tolist() == [0.0, 0.0, 0.0]
     half = true.clone()
     half[:, 30:40] = False  # half of the robot found, nothing else claimed
-    assert sear.mask_iou(half, true).tolist() == pytest.approx([0.5] * 3)
-    assert math.isnan(sear.mask_iou(torch.zeros(1, 4, 4), torch.zeros(1, 4, 4)).item())  # nothing to score
+    assert experiment.mask_iou(half, true).tolist() == pytest.approx([0.5] * 3)
+    assert math.isnan(experiment.mask_iou(torch.zeros(1, 4, 4), torch.zeros(1, 4, 4)).item())  # nothing to score
 
 
 def test_psnr_of_a_known_error():
     target = torch.rand(2, 3, 84, 84) * 0.8
-    assert sear.psnr(target + 0.1, target).tolist() == pytest.approx([20.0, 20.0], abs=1e-4)  # mse 0.01
-    assert sear.psnr(torch.zeros(1, 3, 8, 8), torch.ones(1, 3, 8, 8)).item() == pytest.approx(0.0)
+    assert experiment.psnr(target + 0.1, target).tolist() == pytest.approx([20.0, 20.0], abs=1e-4)  # mse 0.01
+    assert experiment.psnr(torch.zeros(1, 3, 8, 8), torch.ones(1, 3, 8, 8)).item() == pytest.approx(0.0)
 
 
 def test_eval_csv_has_decoder_metrics_for_sear_and_not_for_drq(tiny_runs):
@@ -100,7 +101,7 @@ def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores,
             self.t += 1
             return self.obs(), 0.0, False, self.t == 5, {}
 
-    watch = sear.EvalWatch(agent, Env(), str(tmp_path / "videos" / "eval_0.mp4"))
+    watch = experiment.EvalWatch(agent, Env(), str(tmp_path / "videos" / "eval_0.mp4"))
     for _ in range(2):  # two episodes of 5 steps; only the first is filmed
         watch.reset(seed=0)
         while not watch.step(np.zeros(2))[3]:

@@ -16,7 +16,9 @@ import pytest
 import torch
 from scipy import ndimage
 
+import cli
 import envs
+import experiment
 import sear
 from tests.test_envs import raw_robot, rand_vecs, is_one_of
 
@@ -31,9 +33,9 @@ KITCHEN_SOLVED = {  # FrankaKitchen's goals (OBS_ELEMENT_INDICES -> OBS_ELEMENT_
     "kettle": (slice(23, 30), (-0.23, 0.75, 1.62, 0.99, 0.0, 0.0, -0.06))}
 
 
-def cli(args, cwd, timeout=300):
+def run_sear(args, cwd, timeout=300):
     # GLIBC_TUNABLES as sear.py sets it: it then skips its re-exec (a second torch import).
-    env = {**os.environ, "MUJOCO_GL": "egl", "GLIBC_TUNABLES": ":".join(sear.GLIBC_MALLOC)}
+    env = {**os.environ, "MUJOCO_GL": "egl", "GLIBC_TUNABLES": ":".join(cli.GLIBC_MALLOC)}
     return subprocess.run([sys.executable, str(ROOT / "sear.py"), *args], capture_output=True, text=True,
                           timeout=timeout, cwd=cwd, env=env)
 
@@ -139,25 +141,27 @@ def test_random_kitchen_camera_moves_image_and_mask(kitchen):
 
 # ---------------------------------------------------------------- sear.py: defaults, evaluation plan
 def test_multitask_defaults_apply_to_task_sets_unless_given():
-    cfg, _ = sear.parse_args(["--env", "metaworld-mt10"])
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10"], sear.Config, sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (512, 2_000_000)
-    cfg, _ = sear.parse_args(["--env", "metaworld-mt10", "--recipe", "authors"])
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10", "--recipe", "authors"], sear.Config, sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (4096, 2_000_000)   # the authors' code keeps 4096
-    cfg, _ = sear.parse_args(["--env", "metaworld-mt50", "--latent-dim", "256", "--std-steps", "7"])
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt50", "--latent-dim", "256", "--std-steps", "7"], sear.Config,
+                               sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (256, 7)
-    cfg, _ = sear.parse_args(["--env", "metaworld-door-open"])
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-door-open"], sear.Config, sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (4096, 500_000)
 
 
 def test_evaluation_runs_every_task():
     cfg = sear.Config(eval_episodes=10)
     three = types.SimpleNamespace(unwrapped=types.SimpleNamespace(tasks=("a", "b", "c")))
-    assert sear.eval_tasks(three, cfg) == ["a"] * 4 + ["b"] * 4 + ["c"] * 4   # ceil(10 / 3)
+    assert experiment.eval_tasks(three, cfg) == ["a"] * 4 + ["b"] * 4 + ["c"] * 4   # ceil(10 / 3)
     cfg.eval_episodes_per_task = 2
-    assert sear.eval_tasks(three, cfg) == ["a", "a", "b", "b", "c", "c"]
+    assert experiment.eval_tasks(three, cfg) == ["a", "a", "b", "b", "c", "c"]
     one = types.SimpleNamespace(unwrapped=types.SimpleNamespace())
-    assert sear.eval_tasks(one, cfg) == [None] * 10
-    assert sear.per_task_columns({"a": [(1.0, 0.0), (3.0, 1.0)]}) == {"return/a": 2.0, "success/a": 0.5}
+    assert experiment.eval_tasks(one, cfg) == [None] * 10
+    episodes = [sear.Episode(1.0, False, "a"), sear.Episode(3.0, True, "a")]
+    assert experiment.eval_columns(episodes) == {"success": 0.5, "return/a": 2.0, "success/a": 0.5}
 
 
 # ---------------------------------------------------------------- transfer
@@ -174,7 +178,7 @@ def test_copy_parts_copies_exactly_the_named_parts(parts):
     agent = sear.Agent(cfg, 4, torch.device("cpu"))
     fresh = {k: {n: v.clone() for n, v in sd.items()} for k, sd in agent.state_dict().items()
              if k in ("encoder", "aux", "actor", "critic", "critic_target")}
-    sear.copy_parts(agent, source.state_dict(), parts)
+    experiment.copy_parts(agent, source.state_dict(), parts)
     copied = {"encoder": ["encoder"], "encoder+decoders": ["encoder", "aux"],
               "all": ["encoder", "aux", "actor", "critic"]}[parts]
     saved, now = source.state_dict(), agent.state_dict()
@@ -191,7 +195,7 @@ def test_copy_parts_copies_exactly_the_named_parts(parts):
 def mt3_run(tmp_path_factory):
     """A CLI smoke run of metaworld-mt3: the source of the transfer tests."""
     root = tmp_path_factory.mktemp("mt3")
-    r = cli(["--run-root", str(root / "runs"), "--env", "metaworld-mt3", "--log-every", "0", *TINY], root)
+    r = run_sear(["--run-root", str(root / "runs"), "--env", "metaworld-mt3", "--log-every", "0", *TINY], root)
     assert r.returncode == 0, r.stderr[-2000:]
     (run_dir,) = (root / "runs").iterdir()
     return run_dir, r.stdout
@@ -265,10 +269,10 @@ def test_init_from_a_run_without_snapshot(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--kitchen-camera", "sideways"], "--kitchen-camera must be fixed or random, got 'sideways'"),
+    (["--kitchen-camera", "sideways"], "argument --kitchen-camera: invalid choice: 'sideways'"),
     (["--eval-episodes-per-task", "-1"], "--eval-episodes-per-task must be >= 0, got -1"),
     (["--init-parts", "all"], "--init-parts needs --init-from"),
-    (["--init-from", "x", "--init-parts", "decoders"], "--init-parts must be encoder or encoder+decoders or all"),
+    (["--init-from", "x", "--init-parts", "decoders"], "argument --init-parts: invalid choice: 'decoders'"),
     (["--env", "walker-walk", "--kitchen-camera", "random"], "a random kitchen camera only applies to kitchen-*"),
 ])
 def test_bad_multitask_flags_are_one_line(tmp_path, capsys, args, message):

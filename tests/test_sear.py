@@ -5,6 +5,8 @@ import numpy as np
 import pytest
 import torch
 
+import cli
+import experiment
 import sear
 
 
@@ -23,7 +25,8 @@ def fake_batch(n=4, stack=3, action_dim=2, seed=0):
     reward = torch.rand(n, 1, generator=g)
     discount = torch.full((n, 1), 0.99)
     next_obs = torch.randint(0, 256, (n, 3 * stack, 84, 84), generator=g).float()
-    return obs, mask, action, reward, discount, next_obs
+    next_mask = (torch.rand(n, stack, 84, 84, generator=g) > 0.7).float()
+    return sear.Batch(obs, mask, action, reward, discount, next_obs, next_mask)
 
 
 # ---------------------------------------------------------------- networks
@@ -59,7 +62,7 @@ def test_mask_loss_equals_hand_computed_bce():
 
 def test_recon_loss_zero_for_perfect_reconstruction():
     cfg = small_cfg()
-    aux = sear.SearAux(cfg, cfg.latent_dim)
+    aux = sear.SearAux(cfg, sear.PooledEncoder(9, cfg.latent_dim))
     obs, mask = fake_batch()[:2]
 
     class Perfect(torch.nn.Module):
@@ -75,9 +78,8 @@ def test_recon_loss_zero_for_perfect_reconstruction():
 def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask():
     cfg = small_cfg(recon_coef=0.5, mask_coef=0.25)
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
-    obs, mask, action, reward, discount, next_obs = fake_batch()
     torch.manual_seed(0)
-    loss, latent, m = agent.joint_loss(obs, mask, action, reward, discount, next_obs, step=0)
+    loss, latent, m = agent.joint_loss(fake_batch(), step=0)
     expected = m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     assert m["recon_loss"] > 0 and m["mask_loss"] > 0
@@ -93,8 +95,7 @@ def test_paper_defaults():
 def test_actor_loss_does_not_reach_encoder():
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
-    obs, mask, action, reward, discount, next_obs = fake_batch()
-    latent, _ = agent.update_critic(obs, mask, action, reward, discount, next_obs, step=0)
+    latent, _ = agent.update_critic(fake_batch(), step=0)
     agent.model_opt.zero_grad(set_to_none=True)
     agent.update_actor(latent, step=0)
     assert all(p.grad is None for p in agent.encoder.parameters())
@@ -142,7 +143,7 @@ def test_critic_and_aux_losses_reach_encoder():
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
     before = [p.detach().clone() for p in agent.encoder.parameters()]
-    agent.update_critic(*fake_batch(), step=0)
+    agent.update_critic(fake_batch(), step=0)
     assert any(not torch.equal(b, p) for b, p in zip(before, agent.encoder.parameters()))
 
 
@@ -291,25 +292,28 @@ def test_exploration_std_counts_agent_steps_not_frames(action_repeat):
         assert sear.linear_std(cfg, step) == pytest.approx(std)
 
 
+def parse(argv):
+    return cli.parse_args(argv, sear.Config, sear.METHODS)[0]
+
+
 def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
-    paper, _ = sear.parse_args(["--env", "walker-walk-distracting"])
+    paper = parse(["--env", "walker-walk-distracting"])
     assert paper == sear.Config(env="walker-walk-distracting")
     assert (paper.recon_coef, paper.mask_coef, paper.nstep, paper.batch_size) == (0.01, 0.0025, 3, 256)
-    authors, _ = sear.parse_args(["--env", "walker-walk-distracting", "--recipe", "authors"])
+    authors = parse(["--env", "walker-walk-distracting", "--recipe", "authors"])
     assert (authors.recon_coef, authors.mask_coef, authors.nstep, authors.batch_size) == (1.0, 0.25, 1, 512)
     assert authors.discount == 0.99 and authors.difficulty == "medium"
     assert "recon_coef=1.0" in capsys.readouterr().out  # the run says what the recipe changed
-    other, _ = sear.parse_args(["--env", "cup-catch-distracting", "--recipe", "authors"])
+    other = parse(["--env", "cup-catch-distracting", "--recipe", "authors"])
     assert (other.nstep, other.batch_size) == (3, 256)  # walker-only values stay off elsewhere
-    mw, _ = sear.parse_args(["--env", "metaworld-door-open", "--recipe", "authors"])
+    mw = parse(["--env", "metaworld-door-open", "--recipe", "authors"])
     assert mw.discount == pytest.approx(0.99 ** 3) and mw.mask_downsample == "stride"
-    kitchen, _ = sear.parse_args(["--env", "kitchen-kettle", "--recipe", "authors"])
+    kitchen = parse(["--env", "kitchen-kettle", "--recipe", "authors"])
     assert kitchen.discount == pytest.approx(0.99 ** 2)
-    explicit, _ = sear.parse_args(["--env", "walker-walk", "--recipe", "authors", "--nstep", "3",
-                                   "--recon-coef", "0.5"])
+    explicit = parse(["--env", "walker-walk", "--recipe", "authors", "--nstep", "3", "--recon-coef", "0.5"])
     assert (explicit.nstep, explicit.recon_coef, explicit.batch_size) == (3, 0.5, 512)  # flags win
-    with pytest.raises(sear.ConfigError, match="--recipe"):
-        sear.parse_args(["--recipe", "mine"])
+    with pytest.raises(cli.ConfigError, match="--recipe"):
+        parse(["--recipe", "mine"])
 
 
 def test_prefetcher_delivers_the_batches_direct_sampling_would():
@@ -323,10 +327,25 @@ def test_prefetcher_delivers_the_batches_direct_sampling_would():
             buf.add(rng.uniform(-1, 1, 2), rng.normal(), False,
                     {"pixels": rng.integers(0, 256, (9, 84, 84), dtype=np.uint8),
                      "mask": rng.integers(0, 2, (3, 84, 84), dtype=np.uint8)})
-    direct = [buf.sample(8, r, margin=4) for r in [np.random.default_rng(5)] for _ in range(3)]
-    pre = sear.Prefetcher(buf, 8, np.random.default_rng(5), torch.device("cpu"), margin=4)
+    direct = [buf.sample(8, r) for r in [np.random.default_rng(5)] for _ in range(3)]
+    pre = experiment.Prefetcher(buf, 8, np.random.default_rng(5), torch.device("cpu"), margin=4)
     fetched = [pre.next() for _ in range(3)]
     pre.close()
     assert not pre.thread.is_alive()
     for d, f in zip(direct, fetched):
         assert all(np.array_equal(x, y.numpy()) for x, y in zip(d, f))
+
+
+def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
+    """While the background sampler reads, the loop overwrites the oldest slots of a full ring: the
+    prefetched batches start `margin` slots after the oldest, where direct sampling starts anywhere."""
+    buf = sear.ReplayBuffer(30, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    fill(buf, [([0.5] * 9, False)] * 8)  # 80 steps into 30 slots
+    oldest = buf.t - buf.capacity
+    pre = experiment.Prefetcher(buf, 64, np.random.default_rng(0), torch.device("cpu"), margin=7)
+    fetched = [pre.next() for _ in range(5)]
+    pre.close()
+    start_times = np.concatenate([b.obs[:, -3, 0, 0].numpy() for b in fetched]).astype(int)  # newest frame: start
+    assert isinstance(fetched[0], sear.Batch) and start_times.min() >= oldest + 7
+    direct = buf.sample(64, np.random.default_rng(0)).obs[:, -3, 0, 0].astype(int)
+    assert direct.min() < oldest + 7

@@ -1,0 +1,384 @@
+"""sear.py's command line: the run settings (RunConfig), flags generated from the dataclasses (the
+algorithm's Config is in sear.py, passed in), the paper and authors recipes, the checks that turn bad
+input into one line on stderr, the saved config of --resume and --init-from, and the process set-up
+(torch device and threads, glibc's malloc tunables).
+
+Loads no numpy or torch at import: `python sear.py` restarts itself with the malloc tunables
+(reexec_with_huge_pages) before those load, so the restart costs a bare interpreter.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from dataclasses import dataclass, field
+
+
+def arg(default, doc, choices=None):
+    """A config field with its one-line doc (--help) and, for a fixed set of values, the choices."""
+    return field(default=default, metadata={"doc": doc, "choices": choices})
+
+
+# Transfer (--init-from): which networks of another run's agent a new run starts from.
+INIT_PARTS = {"encoder": ("encoder",), "encoder+decoders": ("encoder", "aux"),
+              "all": ("encoder", "aux", "actor", "critic")}
+
+
+@dataclass
+class RunConfig:
+    """How this process runs the experiment (sear.Config says what the experiment is): devices, files,
+    logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt."""
+    device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
+    prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
+                                "background thread while the current update runs", ("auto", "on", "off"))
+    threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
+                          "Several runs on one machine: give each cores / runs")
+    run_root: str = arg("runs", "folder that holds run directories")
+    resume: str = arg("", "run directory to continue from its last snapshot")
+    recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code "
+                               "where the two differ: RECIPES below, README's table); explicit flags win",
+                      ("paper", "authors"))
+    save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
+    save_video: bool = arg(False, "write each evaluation's first episode to videos/eval_<frame>.mp4: camera | true "
+                                  "mask | predicted mask | reconstruction (the panels the method has)")
+    init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
+                             "metaworld-mt10); method and network sizes follow that run unless given")
+    init_parts: str = arg("encoder+decoders", "with --init-from, what to copy: encoder | encoder+decoders (the "
+                                              "method's auxiliary networks too; the authors' fine-tuning) | all "
+                                              "(also actor and critic); the rest and the optimisers start fresh",
+                          tuple(INIT_PARTS))
+    log_every: float = arg(10.0, "seconds between progress lines")
+    snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at the next "
+                                        "episode end (0 = after every episode)")
+
+
+class ConfigError(ValueError):
+    """Bad user input: reported as one line on stderr."""
+
+
+class Interrupted(Exception):
+    """Ctrl-C during training; the message says what was saved and how to continue."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Recipes
+# ------------------------------------------------------------------------------------------------
+def _walker(cfg):
+    return cfg.env.startswith("walker-")
+
+
+def _manipulation(cfg):
+    return cfg.env.split("-")[0] in ("metaworld", "kitchen", "adroit")
+
+
+def _multitask(cfg):
+    import envs  # imported late so --help needs no MuJoCo
+    return envs.is_task_set(cfg.env)
+
+
+def _authors_discount(cfg):
+    import envs  # the suite's default action repeat; imported late so --help needs no MuJoCo
+    return round(0.99 ** (1 + (cfg.action_repeat or envs.default_action_repeat(cfg.env))), 6)
+
+
+# Every value where the paper's hyper-parameter table and the authors' released code
+# (github.com/sear-rl/sear-rl) differ: (field, applies to, authors' value, source). The Config defaults
+# are the paper's values; --recipe authors replaces these unless the flag is given explicitly.
+RECIPES = {"authors": (
+    ("recon_coef", lambda cfg: True, 1.0, "sear/cfgs/agent/sear.yaml: reconstruction_loss_coeff"),
+    ("mask_coef", lambda cfg: True, 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
+    ("nstep", _walker, 1, "sear/cfgs/task/distracting_walker_walk.yaml: nstep (DrQ-v2's walker config)"),
+    ("batch_size", _walker, 512, "sear/cfgs/task/distracting_walker_walk.yaml: batch_size"),
+    # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the
+    # replay multiplies by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
+    ("discount", _manipulation, _authors_discount,
+     "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
+    ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
+    # The paper's multi-task latent is 512 (MULTITASK below); the authors' code keeps 4096 there too.
+    ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
+)}
+
+
+# The paper's multi-task settings (its hyper-parameter table), applied under both recipes before the
+# recipe's own rows: the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x
+# longer exploration schedule. The authors' code keeps latent 4096 there (its row in RECIPES).
+MULTITASK = (
+    ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
+    ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
+                                         "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
+)
+
+
+def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
+    """Set the multi-task rows, then the recipe's values on `cfg`, except fields the user gave
+    explicitly. Returns what changed."""
+    changed = {}  # a recipe row may override a multi-task row: report the value that stands
+    for name, applies, value, source in (*MULTITASK, *RECIPES.get(recipe, ())):
+        if name in explicit or not applies(cfg):
+            continue
+        setattr(cfg, name, value(cfg) if callable(value) else value)
+        changed[name] = f"{name}={getattr(cfg, name)} ({source})"
+    return list(changed.values())
+
+
+# ------------------------------------------------------------------------------------------------
+# Flags and checks
+# ------------------------------------------------------------------------------------------------
+class OneLineParser(argparse.ArgumentParser):
+    def error(self, message):  # the caller prints it as one line, as every other bad input
+        raise ConfigError(message)
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def build_parser(Config, methods: dict) -> OneLineParser:
+    """One flag per field of Config and RunConfig, its help the field's doc; enums take `choices`."""
+    parser = OneLineParser(prog="sear.py", description="SEAR: Structured Environment-Agent Representations "
+                                                       "for visual RL (ICML 2023).")
+    for cls, title in ((Config, "the experiment (sear.py Config)"), (RunConfig, "the run (cli.py RunConfig)")):
+        group, defaults = parser.add_argument_group(title), cls()
+        for f in dataclasses.fields(cls):
+            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})"
+            choices = f.metadata.get("choices")
+            if f.name == "method":  # the METHODS table documents itself
+                help_text = "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
+                choices = list(methods)
+            if f.type in ("bool", bool):
+                group.add_argument(flag(f.name), action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
+                                   help=help_text)
+            else:
+                typ = {"int": int, "float": float, "str": str}[f.type if isinstance(f.type, str) else f.type.__name__]
+                group.add_argument(flag(f.name), type=typ, default=argparse.SUPPRESS, help=help_text,
+                                   choices=choices)
+    return parser
+
+
+def flag_names(Config) -> set[str]:
+    """Every flag sear.py's parser has: one per field, plus --no-X for booleans."""
+    names = set()
+    for f in (*dataclasses.fields(Config), *dataclasses.fields(RunConfig)):
+        names.add(flag(f.name))
+        if f.type in ("bool", bool):
+            names.add("--no-" + flag(f.name)[2:])
+    return names
+
+
+# The range of each numeric flag; the parser checks the types, `choices` the enums.
+RANGES = (
+    ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
+                              "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
+                              "eval_every", "mae_patch", "curl_dim")),
+    (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
+                                "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip",
+                                "eval_episodes_per_task", "snapshot_minutes", "threads")),
+    ("in [0, 1]", lambda v: 0.0 <= v <= 1.0, ("discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio",
+                                              "camera_distraction", "color_distraction")),
+)
+
+
+def validate(cfg, run: RunConfig, methods: dict) -> None:
+    """What the parser's types and choices cannot see: ranges and the rules between fields."""
+    for rule, holds, names in RANGES:
+        for name in names:
+            value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
+            if not holds(value):
+                raise ConfigError(f"{flag(name)} must be {rule}, got {value}")
+    if cfg.latent_dim % 2:
+        raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
+    if 84 % cfg.mae_patch:
+        raise ConfigError(f"--mae-patch must divide 84, got {cfg.mae_patch}")
+    if cfg.mask_source != "sim" and not (cfg.mask_source.startswith("learned:") and cfg.mask_source[8:]):
+        raise ConfigError(f"--mask-source must be sim or learned:PATH (a segment.py model file), got "
+                          f"'{cfg.mask_source}'")
+    if cfg.mask_source != "sim" and not methods[cfg.method].uses_mask:
+        raise ConfigError(f"--mask-source {cfg.mask_source} is for methods that use the robot mask "
+                          f"({', '.join(m for m in methods if methods[m].uses_mask)}), not {cfg.method}")
+    if run.save_video:
+        try:
+            import imageio_ffmpeg  # noqa: F401  (brings its own ffmpeg binary)
+        except ImportError:
+            raise ConfigError("--save-video needs imageio-ffmpeg: pip install -r requirements.txt") from None
+
+
+# ------------------------------------------------------------------------------------------------
+# Saved configs: config.json, --resume, --init-from
+# ------------------------------------------------------------------------------------------------
+def config_dict(cfg, run: RunConfig) -> dict:
+    """config.json and a snapshot's "config": every field of both, flat, as one --flag each."""
+    return {**dataclasses.asdict(cfg), **dataclasses.asdict(run)}
+
+
+def split_config(values: dict, Config) -> tuple:
+    """The (Config, RunConfig) of a flat dict of settings: fields since removed are dropped, renamed
+    ones carried over."""
+    values = dict(values)
+    if "std_frames" in values and "std_steps" not in values:  # snapshots from before std counted steps
+        values["std_steps"] = max(1, values["std_frames"] // max(1, values.get("action_repeat") or 1))
+
+    def build(cls):
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in values.items() if k in names})
+    return build(Config), build(RunConfig)
+
+
+def first_sentence(text) -> str:
+    """The first sentence of a message, on one line. Error lines end at a sentence boundary; a
+    length cut would stop them mid-word (torch's archive errors run on for 400 characters)."""
+    text = " ".join(str(text).split())
+    end = text.find(". ")
+    sentence = text[: end + 1] if end >= 0 else text
+    return sentence if not sentence or sentence.endswith((".", "!", "?")) else sentence + "."
+
+
+def load_snapshot(run_dir, flag="--resume", mmap=False):
+    """A run's snapshot.pt; every problem is a ConfigError naming `flag` (if any). mmap=True maps the
+    tensors instead of reading them (--init-from reads a snapshot twice: its config, then its weights)."""
+    import torch
+    path = os.path.join(run_dir, "snapshot.pt")
+    flag = f"{flag}: " if flag else ""
+    if not os.path.isdir(run_dir):
+        raise ConfigError(f"{flag}no such run directory '{run_dir}'")
+    if not os.path.exists(path):
+        raise ConfigError(f"{flag}'{run_dir}' has no snapshot.pt (the run stopped before its first "
+                          f"snapshot; see --snapshot-minutes)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
+    except Exception as e:  # corrupt or foreign file: say so in one line
+        reason = first_sentence(e)
+        raise ConfigError(f"{flag}cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+
+
+def init_fields(cfg, init_parts: str) -> tuple[str, ...]:
+    """The config fields that fix the shapes of the parts --init-parts copies: they must be the
+    source run's."""
+    fields = ("method", "latent_dim", "frame_stack")
+    if init_parts != "encoder" and cfg.method == "curl":
+        fields += ("curl_dim",)  # CURL's projection heads are its auxiliary networks
+    if init_parts == "all":
+        fields += ("feature_dim", "hidden_dim")
+    return fields
+
+
+def inherit_from_source(cfg, run: RunConfig, explicit: set, Config) -> set:
+    """--init-from: the fields that fix the shapes of the copied networks (init_fields) come from the
+    source run's config; given explicitly, they must equal it. Returns the fields taken."""
+    state = load_snapshot(run.init_from, "--init-from", mmap=True)
+    source, defaults = state["config"], Config()
+    run.init_from = os.path.abspath(run.init_from)  # config.json names the source from anywhere
+    taken = set()
+    if "method" not in explicit:  # first: which fields matter depends on the method
+        cfg.method = source["method"]
+        taken.add("method")
+    for name in init_fields(cfg, run.init_parts):
+        value = source.get(name, getattr(defaults, name))
+        if name in explicit and getattr(cfg, name) != value:
+            raise ConfigError(f"--init-from: the source run has {flag(name)} {value} but this run "
+                              f"{getattr(cfg, name)}; --init-parts {run.init_parts} copies networks of that size "
+                              f"(leave {flag(name)} out to take the source's)")
+        if name not in explicit:
+            setattr(cfg, name, value)
+            taken.add(name)
+    frame = state["counters"]["step"] * source.get("action_repeat", 1)
+    print(f"init-from {run.init_from} ({source['env']}, frame {frame}): copies {run.init_parts}; "
+          + ", ".join(f"{k}={getattr(cfg, k)}" for k in init_fields(cfg, run.init_parts)) + " as the source run")
+    return taken
+
+
+RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
+                     "save_video"}
+
+
+def parse_args(argv, Config, methods: dict) -> tuple:
+    """(Config, RunConfig, snapshot) from the flags; with --resume, the run's saved config (plus the
+    few flags that may change) and its snapshot, else snapshot None."""
+    given = vars(build_parser(Config, methods).parse_args(argv))
+    if given.get("resume"):
+        snapshot = load_snapshot(given["resume"])
+        saved = snapshot["config"]
+        for k, v in given.items():
+            if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
+                raise ConfigError(f"{flag(k)} cannot change on --resume "
+                                  f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
+        cfg, run = split_config({**saved, **given}, Config)
+        validate(cfg, run, methods)  # a resumed config was resolved when the run started: no recipe again
+        return cfg, run, snapshot
+    cfg, run = split_config(given, Config)
+    validate(cfg, run, methods)
+    if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
+        cfg.mask_source = "learned:" + os.path.abspath(cfg.mask_source[len("learned:"):])
+    explicit = set(given)
+    if "init_parts" in given and not run.init_from:
+        raise ConfigError("--init-parts needs --init-from (the run to copy from)")
+    if run.init_from:  # the source run fixes the copied networks' sizes; the recipe may not change them
+        explicit |= inherit_from_source(cfg, run, explicit, Config)
+    changed = apply_recipe(cfg, run.recipe, explicit)
+    if changed:
+        print(f"recipe {run.recipe}: " + "; ".join(changed))
+    return cfg, run, None
+
+
+def main(argv, Config, methods: dict, train) -> int:
+    """sear.py's exit: 0 done, 2 bad input (one line), 130 Ctrl-C (one line saying what was saved)."""
+    try:
+        cfg, run, snapshot = parse_args(argv, Config, methods)
+        train(cfg, run, snapshot)
+    except ConfigError as e:
+        print(f"sear.py: error: {e}", file=sys.stderr)
+        return 2
+    except Interrupted as e:
+        print(f"\nsear.py: {e}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:  # while reading the flags or the snapshot: nothing started
+        print("\nsear.py: interrupted before training started; nothing was saved", file=sys.stderr)
+        return 130
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# The process: glibc's malloc, torch's threads and device
+# ------------------------------------------------------------------------------------------------
+# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
+# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
+# reused from one update to the next instead of being mapped, faulted in and unmapped each time.
+GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
+
+
+def reexec_with_huge_pages():
+    """On Linux/glibc, restart this process once with the GLIBC_MALLOC tunables above.
+    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) would otherwise be mapped
+    and unmapped by glibc at every update: with 4 KB pages ~1.8M page faults per SEAR update, and
+    still ~60k with huge pages alone (EXPERIMENTS.md, "Update speed"). glibc reads GLIBC_TUNABLES
+    only at start-up, hence the re-exec. Other platforms ignore the variable."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
+        return
+    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
+    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
+
+
+def default_threads():
+    """OMP_NUM_THREADS when set (sweep.py sets it per job), else every core this process may run on
+    (taskset / cgroup affinity). Several runs sharing cores should split them: with more busy
+    threads than cores, torch's threads wait on each other and an update gets ~2x slower, not 1x."""
+    if os.environ.get("OMP_NUM_THREADS", "").isdigit() and int(os.environ["OMP_NUM_THREADS"]) > 0:
+        return int(os.environ["OMP_NUM_THREADS"])
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def torch_setup(run: RunConfig):
+    """The run's torch device (--device), and its CPU threads (--threads) set."""
+    import torch
+    if run.device == "auto":
+        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    else:
+        try:
+            device = torch.device(run.device)
+        except RuntimeError:
+            raise ConfigError(f"--device: unknown device '{run.device}'")
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
+    torch.set_num_threads(run.threads or default_threads())
+    return device

@@ -1,0 +1,145 @@
+"""The layout's budgets: sear.py is the file people copy, short and mostly algorithm; the harness
+(cli.py, experiment.py) stands beside it, never in front of it. `python tests/test_layout.py`
+prints the numbers.
+
+How lines are counted: physical lines of the file. sear.py's sections start at their banner
+(`# ====` over `# N. Title`); sections 1-7 (Config, networks, augmentation, auxiliary losses,
+agent, replay buffer, evaluation) are the algorithm, the rest (the docstring and imports before
+section 1, and section 8: the training loop and main) are not. A function's length runs from its
+`def` line to its last line, docstring included, decorators not.
+"""
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SEAR = ROOT / "sear.py"
+HARNESS = ("cli", "experiment")
+MODULES = sorted(p.stem for p in ROOT.glob("*.py"))  # the importable modules at the top level
+ALGORITHM_SECTIONS = range(1, 8)
+LOOP = "train"
+
+
+def sections(path=SEAR):
+    """[(number, title, first line, last line)] of sear.py's numbered sections, plus the header (0)."""
+    lines = path.read_text().splitlines()
+    starts = [(int(m[1]), m[2], i) for i, line in enumerate(lines, 1) if (m := re.fullmatch(r"# (\d+)\. (.+)", line))]
+    starts = [(n, title, i - 1 if lines[i - 2].startswith("# ====") else i) for n, title, i in starts]
+    bounds = [(0, "header", 1), *starts]
+    return [(n, title, first, (bounds[k + 1][2] - 1) if k + 1 < len(bounds) else len(lines))
+            for k, (n, title, first) in enumerate(bounds)]
+
+
+def functions(path):
+    """(qualified name, first line, length) of every function and method of a file."""
+    out = []
+
+    def visit(node, prefix):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                out.append((prefix + child.name, child.lineno, child.end_lineno - child.lineno + 1))
+                visit(child, prefix + child.name + ".")
+            elif isinstance(child, ast.ClassDef):
+                visit(child, prefix + child.name + ".")
+    visit(ast.parse(path.read_text()), "")
+    return out
+
+
+def budgets() -> dict:
+    parts = sections()
+    total = parts[-1][3]
+    algorithm = sum(last - first + 1 for n, _, first, last in parts if n in ALGORITHM_SECTIONS)
+    tree = ast.parse(SEAR.read_text())
+    encoders = [node.lineno for node in tree.body if isinstance(node, ast.ClassDef) and node.name.endswith("Encoder")]
+    sear_functions = functions(SEAR)
+    return {"lines": total, "algorithm lines": algorithm, "algorithm share": algorithm / total,
+            "first encoder at line": min(encoders), "sections": parts,
+            "training loop lines": next(n for name, _, n in sear_functions if name == LOOP),
+            "longest other function in sear.py": max((n, name) for name, _, n in sear_functions if name != LOOP),
+            "longest function in the project": max((n, f"{p.relative_to(ROOT)}:{name}") for p in project_files()
+                                                   for name, _, n in functions(p))}
+
+
+def project_files():
+    return sorted(p for p in ROOT.rglob("*.py") if not {".venv", ".git", "fixtures"} & set(p.parts))
+
+
+def test_sear_py_is_at_most_900_lines_and_two_thirds_algorithm():
+    b = budgets()
+    assert [n for n, *_ in b["sections"]] == [0, *ALGORITHM_SECTIONS, 8], b["sections"]
+    assert b["lines"] <= 900, b["lines"]
+    assert b["algorithm share"] >= 2 / 3, b
+
+
+def test_the_encoder_is_defined_within_the_first_200_lines():
+    assert budgets()["first encoder at line"] <= 200
+
+
+def test_functions_are_short():
+    b = budgets()
+    assert b["training loop lines"] <= 80
+    assert b["longest other function in sear.py"][0] <= 60, b["longest other function in sear.py"]
+    assert b["longest function in the project"][0] <= 100, b["longest function in the project"]
+
+
+def loaded_after(statement: str) -> set[str]:
+    code = f"import sys; {statement}; print(' '.join(sorted({{m.split('.')[0] for m in sys.modules}})))"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return set(r.stdout.split())
+
+
+def test_import_sear_loads_no_plotting_video_sweep_or_tensorboard_and_cli_no_torch():
+    assert not {"matplotlib", "imageio", "submitit", "tensorboard"} & loaded_after("import sear")
+    # sear.py restarts itself with glibc's malloc tunables right after `import cli`: cheap only so.
+    assert not {"numpy", "torch"} & loaded_after("import cli")
+
+
+def imports(path) -> set[str]:
+    """The project modules a file imports anywhere (top level or inside a function)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module.split(".")[0])
+    return names & set(MODULES)
+
+
+def test_no_import_cycle_and_nothing_below_sear_imports_it():
+    graph = {m: imports(ROOT / f"{m}.py") - {m} for m in MODULES}
+
+    def reach(m, seen):
+        for n in graph[m] - seen:
+            seen.add(n)
+            reach(n, seen)
+        return seen
+    assert [m for m in MODULES if m in reach(m, set())] == []
+    # `python sear.py` runs it as __main__: nothing it imports may import a second copy as `sear`.
+    assert "sear" not in set().union(*(reach(m, {m}) for m in graph["sear"]))
+    assert all("sear" not in graph[m] for m in HARNESS)
+
+
+def test_plot_sweep_and_benchmarks_take_only_algorithm_names_from_sear():
+    tree = ast.parse(SEAR.read_text())
+    own = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            own.add(node.name)
+        elif isinstance(node, ast.Assign):
+            own |= {t.id for t in node.targets if isinstance(t, ast.Name)}
+    users = [ROOT / "plot.py", ROOT / "sweep.py", *sorted((ROOT / "benchmarks").glob("*.py"))]
+    used = {(p.name, node.attr) for p in users for node in ast.walk(ast.parse(p.read_text()))
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "sear"}
+    assert {(f, name) for f, name in used if name not in own} == set()  # e.g. sear.cli.X: take it from cli
+
+
+if __name__ == "__main__":
+    b = budgets()
+    for n, title, first, last in b.pop("sections"):
+        kind = "algorithm" if n in ALGORITHM_SECTIONS else "other"
+        print(f"sear.py section {n} {title}: lines {first}-{last} ({last - first + 1}, {kind})")
+    for name, value in b.items():
+        print(f"{name}: {value:.3f}" if isinstance(value, float) else f"{name}: {value}")
