@@ -77,6 +77,7 @@ from scipy import ndimage
 __all__ = [
     "EnvError", "env_names", "default_action_repeat", "is_task_set", "metaworld_set_tasks", "make_env", "SEAREnv",
     "robot_geoms", "robot_pixels", "downsample_mask", "procedural_background",
+    "d4rl_reward",
 ]
 
 
@@ -121,6 +122,11 @@ _METAWORLD_SETS = ("mt3", "mt10", "mt50")
 _MT3_TASKS = ("button-press-topdown-wall", "door-open", "hammer")
 _ADROIT_TASKS = {"door": "AdroitHandDoor-v1", "hammer": "AdroitHandHammer-v1",
                  "pen": "AdroitHandPen-v1", "relocate": "AdroitHandRelocate-v1"}
+# Episode lengths of D4RL's <task>-human-v1, the authors' Adroit tasks (d4rl/hand_manipulation_suite/
+# __init__.py, MAX_STEPS); gymnasium-robotics registers 200 for all four.
+_ADROIT_EPISODE_STEPS = {"door": 200, "hammer": 200, "pen": 100, "relocate": 200}
+# D4RL's pen episode ends when the pen falls below this height (pen_v0.py, step).
+_PEN_DROP_HEIGHT = 0.075
 
 # Original Distracting Control Suite difficulty settings.  Number of background
 # videos (None = all videos of the split) and the scale of the optional camera
@@ -592,8 +598,58 @@ class _DMCBackend:
         self.physics.free()
 
 
+def _dist(a, b) -> float:
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)))
+
+
+def d4rl_reward(task: str, data: mujoco.MjData) -> float:
+    """D4RL's dense reward of an Adroit task, from the simulator state after a step
+    (d4rl/hand_manipulation_suite/<task>_v0.py, ``step``; bonuses on, as in D4RL).
+
+    Computed here rather than taken from gymnasium-robotics: its AdroitHand{Door,Hammer,Relocate}-v1
+    (1.4.2) flip the sign of the hand-to-object term and so pay the hand for moving away from the
+    handle, hammer or ball (Gymnasium-Robotics PR #220). The authors trained on D4RL's envs.
+    """
+    palm = data.site("S_grasp").xpos
+    if task == "door":
+        door = float(data.joint("door_hinge").qpos[0])
+        reward = -0.1 * _dist(palm, data.site("S_handle").xpos)     # get to the handle
+        reward -= 0.1 * (door - 1.57) ** 2                            # open the door
+        reward -= 1e-5 * float(np.sum(data.qvel ** 2))                # velocity cost
+        return reward + 2 * (door > 0.2) + 8 * (door > 1.0) + 10 * (door > 1.35)
+    if task == "hammer":
+        hammer, tool = data.body("Object").xpos, data.site("tool").xpos
+        nail, goal = data.site("S_target").xpos, data.site("nail_goal").xpos
+        reward = -0.1 * _dist(palm, hammer)                           # get to the hammer
+        reward -= _dist(tool, nail)                                   # hammer head to the nail
+        reward -= 10 * _dist(nail, goal)                              # nail into the board
+        reward -= 1e-2 * float(np.linalg.norm(data.qvel))             # velocity cost
+        reward += 2 * (hammer[2] > 0.04 and tool[2] > 0.04)           # hammer lifted
+        return reward + 25 * (_dist(nail, goal) < 0.02) + 75 * (_dist(nail, goal) < 0.01)
+    if task == "relocate":
+        ball, target = data.body("Object").xpos, data.site("target").xpos
+        reward = -0.1 * _dist(palm, ball)                             # hand to the ball
+        if ball[2] > 0.04:                                            # lifted: carry it to the target
+            reward += 1.0 - 0.5 * _dist(palm, target) - 0.5 * _dist(ball, target)
+        return reward + 10 * (_dist(ball, target) < 0.1) + 20 * (_dist(ball, target) < 0.05)
+    if task == "pen":
+        # Orientations are the unit vectors bottom -> top of the pen and of the target pen.
+        pen = data.site("object_top").xpos - data.site("object_bottom").xpos
+        want = data.site("target_top").xpos - data.site("target_bottom").xpos
+        similarity = float(np.dot(pen, want) / (np.linalg.norm(pen) * np.linalg.norm(want)))
+        dist = _dist(data.body("Object").xpos, data.site("eps_ball").xpos)
+        reward = -dist + similarity
+        reward += 10 * (dist < 0.075 and similarity > 0.9) + 50 * (dist < 0.075 and similarity > 0.95)
+        return reward - 5 * (data.body("Object").xpos[2] < _PEN_DROP_HEIGHT)   # dropped
+    raise ValueError(f"no Adroit task {task!r}")
+
+
 class _GymBackend:
-    """Gymnasium-Robotics Kitchen / Adroit via gym.make (TimeLimit included)."""
+    """Gymnasium-Robotics Kitchen / Adroit via gym.make (TimeLimit included).
+
+    Adroit follows D4RL's <task>-human-v1 (the authors' envs): D4RL's reward (``d4rl_reward``),
+    its episode lengths, and the pen episode ends when the pen drops, as a truncation: the
+    authors' wrapper (adroit_dm_env.py) ends every D4RL ``done`` with dm_env.truncation."""
 
     flip = False
     mask_scale = 3
@@ -624,10 +680,11 @@ class _GymBackend:
                 cam.azimuth, cam.elevation = _KITCHEN_CAMERA_FIXED
                 self.camera = cam
             else:
-                self.env = gym.make(_ADROIT_TASKS[task], disable_env_checker=True)
+                self.env = gym.make(_ADROIT_TASKS[task], max_episode_steps=_ADROIT_EPISODE_STEPS[task],
+                                    disable_env_checker=True)
                 self.robot_root = "forearm"
                 self.camera = "fixed"
-        self.suite = suite
+        self.suite, self.task = suite, task
         u = self.env.unwrapped
         self.model, self.data = u.model, u.data
         self.action_dim = int(self.env.action_space.shape[0])
@@ -654,7 +711,11 @@ class _GymBackend:
             # is not absorbing, the agent bootstraps from it.  So do we.
             truncated, terminated = truncated or terminated, False
         else:
-            success = bool(info["success"])   # Adroit's goal_achieved
+            success = bool(info["success"])   # Adroit's goal_achieved (D4RL's)
+            reward = d4rl_reward(self.task, self.data)
+            # D4RL's pen ends when the pen drops; the authors' wrapper makes that a truncation.
+            dropped = self.task == "pen" and self.data.body("Object").xpos[2] < _PEN_DROP_HEIGHT
+            truncated = truncated or bool(dropped)
         return float(reward), bool(terminated), bool(truncated), {"success": success}
 
     def close(self):
