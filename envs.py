@@ -76,7 +76,7 @@ from scipy import ndimage
 
 __all__ = [
     "EnvError", "env_names", "default_action_repeat", "is_task_set", "metaworld_set_tasks", "make_env", "SEAREnv",
-    "robot_geoms", "robot_pixels", "downsample_mask", "procedural_background",
+    "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
     "d4rl_reward",
 ]
 
@@ -301,17 +301,20 @@ def downsample_mask(mask: np.ndarray, factor: int, mode: str = "majority") -> np
     return blocks.sum(axis=(1, 3)) * 2 > factor * factor
 
 
-def _approximate_mask(mask: np.ndarray) -> np.ndarray:
-    """The paper's "approximate mask": coarse, blurry, re-thresholded.
+def approximate_mask(mask: np.ndarray, factor: int = 3, sigma: float = 0.5,
+                     threshold: float = 0.9) -> np.ndarray:
+    """The paper's "approximate mask": downsample, upsample, Gaussian blur, threshold.
 
-    Downsample 4x (area), upsample back (bilinear), gaussian blur, threshold
-    at 0.5.  Keeps the rough robot shape but loses thin parts and detail.
+    The paper gives no numbers; these are the authors' (``SlimMaskWrapper`` in
+    sear/environments/wrappers.py, ``slim_mask_cfg`` in cfgs/train_config.yaml): bilinear
+    resampling without anti-aliasing (skimage's ``rescale``: pixel centres aligned, edges
+    mirrored) down by 3 and back up, sigma 0.5, threshold 0.9.  The high threshold erodes the
+    mask: edges and thin parts go.
     """
-    h, w = mask.shape
-    small = Image.fromarray(mask.astype(np.uint8) * 255).resize(
-        (max(1, w // 4), max(1, h // 4)), Image.BOX)
-    big = np.asarray(small.resize((w, h), Image.BILINEAR), dtype=np.float32) / 255.0
-    return ndimage.gaussian_filter(big, sigma=1.5) > 0.5
+    m = mask.astype(np.float64)
+    small = ndimage.zoom(m, 1 / factor, order=1, mode="mirror", grid_mode=True)
+    big = ndimage.zoom(small, np.divide(m.shape, small.shape), order=1, mode="mirror", grid_mode=True)
+    return ndimage.gaussian_filter(big, sigma, mode="nearest") > threshold
 
 
 # ----------------------------------------------------------------------------
@@ -979,7 +982,7 @@ class SEAREnv(gym.Env):
     def _corrupt(self, mask: np.ndarray) -> np.ndarray:
         """The paper's robustness ablations, applied to the mask whatever its source."""
         if self.mask_approx:
-            mask = _approximate_mask(mask)
+            mask = approximate_mask(mask)
         if self.mask_noise > 0:
             mask = mask & (self._rng.random(mask.shape) >= self.mask_noise)
         return mask

@@ -111,7 +111,8 @@ class Config:
     frame_stack: int = arg(3, "frames stacked into one observation")
     max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
-    mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
+    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian blur (sigma 0.5), "
+                                   "threshold 0.9 (envs.approximate_mask)")
     mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')")
     mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
                                   "applied to every frame gives every mask target and RGBM's input mask; "
