@@ -77,7 +77,7 @@ from scipy import ndimage
 __all__ = [
     "EnvError", "env_names", "default_action_repeat", "is_task_set", "metaworld_set_tasks", "make_env", "SEAREnv",
     "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
-    "d4rl_reward",
+    "d4rl_reward", "exploration_std_steps",
 ]
 
 
@@ -127,6 +127,18 @@ _ADROIT_TASKS = {"door": "AdroitHandDoor-v1", "hammer": "AdroitHandHammer-v1",
 _ADROIT_EPISODE_STEPS = {"door": 200, "hammer": 200, "pen": 100, "relocate": 200}
 # D4RL's pen episode ends when the pen falls below this height (pen_v0.py, step).
 _PEN_DROP_HEIGHT = 0.075
+
+# DrQ-v2's exploration schedule by task difficulty: std 1.0 -> 0.1 over this many agent steps
+# (facebookresearch/drqv2 cfgs/task/{easy,medium,hard}.yaml, stddev_schedule; the per-task cfgs say
+# which file each task takes, and sear-rl/sear-rl's cfgs/task are the same).  Tasks not listed take
+# medium, DrQ-v2's default task (quadruped_walk) being one.
+_DRQV2_STD_STEPS = {"easy": 100_000, "medium": 500_000, "hard": 2_000_000}
+_DRQV2_DIFFICULTY = {
+    **dict.fromkeys(["cartpole-balance", "cartpole-balance_sparse", "cartpole-swingup", "cup-catch",
+                     "finger-spin", "hopper-stand", "pendulum-swingup", "walker-stand", "walker-walk"],
+                    "easy"),
+    **dict.fromkeys(["humanoid-run", "humanoid-stand", "humanoid-walk"], "hard"),
+}
 
 # Original Distracting Control Suite difficulty settings.  Number of background
 # videos (None = all videos of the split) and the scale of the optional camera
@@ -235,6 +247,19 @@ def is_task_set(name: str) -> bool:
     """True for the multi-task Meta-World sets (metaworld-mt3, -mt10, -mt50): every episode draws
     one of several tasks, and the env lists them in ``env.tasks``."""
     return name.startswith("metaworld-") and name[len("metaworld-"):] in _METAWORLD_SETS
+
+
+def exploration_std_steps(name: str) -> int | None:
+    """The agent steps over which DrQ-v2 decays the exploration std on a plain dm_control task
+    (100k easy, 500k medium, 2M hard); None for other suites and unknown names.  Distracting
+    Control is not in DrQ-v2's table: the authors' distracting.yaml keeps 500k for every task."""
+    try:
+        suite, args = _parse_name(name)
+    except EnvError:
+        return None
+    if suite != "dmc":
+        return None
+    return _DRQV2_STD_STEPS[_DRQV2_DIFFICULTY.get(_dmc_name(*args), "medium")]
 
 
 def default_action_repeat(name: str) -> int:

@@ -141,7 +141,8 @@ class Config:
     hidden_dim: int = arg(1024, "actor and critic MLP width")
     std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
     std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
-    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action repeat)")
+    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action "
+                                  "repeat); plain dm_control tasks: DrQ-v2's 100k / 500k / 2M by task, task sets 2M")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
     eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
     eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
@@ -195,26 +196,34 @@ RECIPES = {"authors": (
     ("discount", _manipulation, _authors_discount,
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
-    # The paper's multi-task latent is 512 (MULTITASK below); the authors' code keeps 4096 there too.
+    # The paper's multi-task latent is 512 (TASK_DEFAULTS below); the authors' code keeps 4096 there too.
     ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
 )}
 
 
-# The paper's multi-task settings (its hyper-parameter table), applied under both recipes before the
-# recipe's own rows: the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x
-# longer exploration schedule. The authors' code keeps latent 4096 there (its row in RECIPES).
-MULTITASK = (
+def _drqv2_std_steps(cfg):
+    import envs  # DrQ-v2's per-task table lives with the other suite facts
+    return envs.exploration_std_steps(cfg.env)
+
+
+# Per-task defaults, applied under both recipes before the recipe's own rows. The paper's multi-task
+# settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller
+# latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
+# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task.
+TASK_DEFAULTS = (
     ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
     ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
+    ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
+     "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
 )
 
 
 def apply_recipe(cfg, explicit: set) -> list[str]:
-    """Set the multi-task rows, then the recipe's values on `cfg`, except fields the user gave
-    explicitly. Returns what changed."""
-    changed = {}  # a recipe row may override a multi-task row: report the value that stands
-    for name, applies, value, source in (*MULTITASK, *RECIPES.get(cfg.recipe, ())):
+    """Set the per-task rows (TASK_DEFAULTS), then the recipe's values on `cfg`, except fields the user
+    gave explicitly. Returns what changed."""
+    changed = {}  # a recipe row may override a per-task row: report the value that stands
+    for name, applies, value, source in (*TASK_DEFAULTS, *RECIPES.get(cfg.recipe, ())):
         if name in explicit or not applies(cfg):
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)

@@ -291,6 +291,23 @@ def test_exploration_std_counts_agent_steps_not_frames(action_repeat):
         assert sear.linear_std(cfg, step) == pytest.approx(std)
 
 
+@pytest.mark.parametrize("env, steps", [
+    ("walker-walk", 100_000), ("cup-catch", 100_000), ("cartpole-balance_sparse", 100_000),   # easy.yaml
+    ("cheetah-run", 500_000), ("walker-run", 500_000), ("reacher-hard", 500_000),           # medium.yaml
+    ("humanoid-run", 2_000_000),                                                            # hard.yaml
+    ("fish-swim", 500_000),               # not in DrQ-v2's table: medium, as its default task
+    ("walker-walk-distracting", 500_000), ("cup-catch-distracting", 500_000),   # the authors' distracting.yaml
+    ("metaworld-door-open", 500_000), ("kitchen-kettle", 500_000), ("adroit-pen", 500_000),
+    ("metaworld-mt10", 2_000_000)])
+def test_exploration_schedule_per_task_as_drqv2(env, steps):
+    """DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml decay the std over 100k / 500k / 2M
+    agent steps by task; the paper's Distracting Control tasks and the manipulation suites keep 500k,
+    task sets 2M. Under both recipes; an explicit --std-steps wins."""
+    for recipe in ("paper", "authors"):
+        assert sear.parse_args(["--env", env, "--recipe", recipe])[0].std_steps == steps
+    assert sear.parse_args(["--env", env, "--std-steps", "7"])[0].std_steps == 7
+
+
 def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     paper, _ = sear.parse_args(["--env", "walker-walk-distracting"])
     assert paper == sear.Config(env="walker-walk-distracting")
