@@ -128,8 +128,9 @@ class Config:
     kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)")
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
-    seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
-    exploration_steps: int = arg(2000, "agent steps during which the actor also acts uniformly at random")
+    seed_frames: int = arg(4000, "frames collected before the first update (DrQ-v2's num_seed_frames)")
+    exploration_steps: int = arg(2000, "first agent steps of uniformly random actions (DrQ-v2's num_expl_steps); "
+                                       "then the actor plus noise acts, updated or not yet")
     nstep: int = arg(3, "n of the n-step return")
     batch_size: int = arg(256, "mini-batch size")
     discount: float = arg(0.99, "discount factor gamma")
@@ -1645,10 +1646,9 @@ def train(cfg: Config, resume_state: dict | None = None):
             if frame >= next_eval:
                 paused(run_evaluation)
 
-            if frame < cfg.seed_frames:
-                action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
-            else:
-                action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
+            # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
+            # (Agent.act), then the actor plus noise, not yet updated while the seed frames are collected.
+            action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
             # Learning starts once the buffer holds the seed frames' worth of steps: after the random
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()
