@@ -103,9 +103,9 @@ class Config:
                                   "mask | predicted mask | reconstruction (the panels the method has)")
     init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
                              "metaworld-mt10); method and network sizes follow that run unless given")
-    init_parts: str = arg("encoder+decoders", "with --init-from, what to copy: encoder | encoder+decoders (the "
-                                              "method's auxiliary networks too; the authors' fine-tuning) | all "
-                                              "(also actor and critic); the rest and the optimisers start fresh")
+    init_parts: str = arg("all", "with --init-from, what to copy: encoder | encoder+decoders (the method's "
+                                 "auxiliary networks too) | all (also actor and critic: the authors' default, "
+                                 "just_encoder_decoders false); the rest and the optimisers start fresh")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
