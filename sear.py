@@ -170,6 +170,10 @@ def _walker(cfg):
     return cfg.env.startswith("walker-")
 
 
+def _humanoid(cfg):
+    return cfg.env in ("humanoid-run", "humanoid-stand", "humanoid-walk")
+
+
 def _manipulation(cfg):
     return cfg.env.split("-")[0] in ("metaworld", "kitchen", "adroit")
 
@@ -192,6 +196,10 @@ RECIPES = {"authors": (
     ("mask_coef", lambda cfg: True, 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
     ("nstep", _walker, 1, "sear/cfgs/task/distracting_walker_walk.yaml: nstep (DrQ-v2's walker config)"),
     ("batch_size", _walker, 512, "sear/cfgs/task/distracting_walker_walk.yaml: batch_size"),
+    ("lr", _humanoid, 8e-5, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: lr (DrQ-v2's)"),
+    ("feature_dim", _humanoid, 100, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: feature_dim (DrQ-v2's)"),
+    ("replay_size", lambda cfg: cfg.env == "quadruped-run", 100_000,
+     "sear/cfgs/task/quadruped_run.yaml: replay_buffer_size (DrQ-v2's)"),
     # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the
     # replay multiplies by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
     ("discount", _manipulation, _authors_discount,

@@ -322,6 +322,11 @@ def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     assert mw.discount == pytest.approx(0.99 ** 3) and mw.mask_downsample == "stride"
     kitchen, _ = sear.parse_args(["--env", "kitchen-kettle", "--recipe", "authors"])
     assert kitchen.discount == pytest.approx(0.99 ** 2)
+    humanoid, _ = sear.parse_args(["--env", "humanoid-walk", "--recipe", "authors"])
+    assert (humanoid.lr, humanoid.feature_dim, humanoid.replay_size) == (8e-5, 100, 250_000)  # DrQ-v2's hard cfgs
+    quadruped, _ = sear.parse_args(["--env", "quadruped-run", "--recipe", "authors"])
+    assert (quadruped.lr, quadruped.feature_dim, quadruped.replay_size) == (1e-4, 50, 100_000)
+    assert sear.parse_args(["--env", "humanoid-walk"])[0].lr == 1e-4   # the paper's table
     explicit, _ = sear.parse_args(["--env", "walker-walk", "--recipe", "authors", "--nstep", "3",
                                    "--recon-coef", "0.5"])
     assert (explicit.nstep, explicit.recon_coef, explicit.batch_size) == (3, 0.5, 512)  # flags win
