@@ -103,15 +103,16 @@ class Config:
                                   "mask | predicted mask | reconstruction (the panels the method has)")
     init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
                              "metaworld-mt10); method and network sizes follow that run unless given")
-    init_parts: str = arg("encoder+decoders", "with --init-from, what to copy: encoder | encoder+decoders (the "
-                                              "method's auxiliary networks too; the authors' fine-tuning) | all "
-                                              "(also actor and critic); the rest and the optimisers start fresh")
+    init_parts: str = arg("all", "with --init-from, what to copy: encoder | encoder+decoders (the method's "
+                                 "auxiliary networks too) | all (also actor and critic: the authors' default, "
+                                 "just_encoder_decoders false); the rest and the optimisers start fresh")
     # --- environment (paper hyper-parameter table) ---
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
     max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
-    mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
+    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian blur (sigma 0.5), "
+                                   "threshold 0.9 (envs.approximate_mask)")
     mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')")
     mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
                                   "applied to every frame gives every mask target and RGBM's input mask; "
@@ -127,8 +128,9 @@ class Config:
     kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)")
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
-    seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
-    exploration_steps: int = arg(2000, "agent steps during which the actor also acts uniformly at random")
+    seed_frames: int = arg(4000, "frames collected before the first update (DrQ-v2's num_seed_frames)")
+    exploration_steps: int = arg(2000, "first agent steps of uniformly random actions (DrQ-v2's num_expl_steps); "
+                                       "then the actor plus noise acts, updated or not yet")
     nstep: int = arg(3, "n of the n-step return")
     batch_size: int = arg(256, "mini-batch size")
     discount: float = arg(0.99, "discount factor gamma")
@@ -140,7 +142,8 @@ class Config:
     hidden_dim: int = arg(1024, "actor and critic MLP width")
     std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
     std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
-    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action repeat)")
+    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action "
+                                  "repeat); plain dm_control tasks: DrQ-v2's 100k / 500k / 2M by task, task sets 2M")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
     eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
     eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
@@ -167,6 +170,10 @@ def _walker(cfg):
     return cfg.env.startswith("walker-")
 
 
+def _humanoid(cfg):
+    return cfg.env in ("humanoid-run", "humanoid-stand", "humanoid-walk")
+
+
 def _manipulation(cfg):
     return cfg.env.split("-")[0] in ("metaworld", "kitchen", "adroit")
 
@@ -189,31 +196,43 @@ RECIPES = {"authors": (
     ("mask_coef", lambda cfg: True, 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
     ("nstep", _walker, 1, "sear/cfgs/task/distracting_walker_walk.yaml: nstep (DrQ-v2's walker config)"),
     ("batch_size", _walker, 512, "sear/cfgs/task/distracting_walker_walk.yaml: batch_size"),
+    ("lr", _humanoid, 8e-5, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: lr (DrQ-v2's)"),
+    ("feature_dim", _humanoid, 100, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: feature_dim (DrQ-v2's)"),
+    ("replay_size", lambda cfg: cfg.env == "quadruped-run", 100_000,
+     "sear/cfgs/task/quadruped_run.yaml: replay_buffer_size (DrQ-v2's)"),
     # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the
     # replay multiplies by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
     ("discount", _manipulation, _authors_discount,
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
-    # The paper's multi-task latent is 512 (MULTITASK below); the authors' code keeps 4096 there too.
+    # The paper's multi-task latent is 512 (TASK_DEFAULTS below); the authors' code keeps 4096 there too.
     ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
 )}
 
 
-# The paper's multi-task settings (its hyper-parameter table), applied under both recipes before the
-# recipe's own rows: the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x
-# longer exploration schedule. The authors' code keeps latent 4096 there (its row in RECIPES).
-MULTITASK = (
+def _drqv2_std_steps(cfg):
+    import envs  # DrQ-v2's per-task table lives with the other suite facts
+    return envs.exploration_std_steps(cfg.env)
+
+
+# Per-task defaults, applied under both recipes before the recipe's own rows. The paper's multi-task
+# settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller
+# latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
+# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task.
+TASK_DEFAULTS = (
     ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
     ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
+    ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
+     "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
 )
 
 
 def apply_recipe(cfg, explicit: set) -> list[str]:
-    """Set the multi-task rows, then the recipe's values on `cfg`, except fields the user gave
-    explicitly. Returns what changed."""
-    changed = {}  # a recipe row may override a multi-task row: report the value that stands
-    for name, applies, value, source in (*MULTITASK, *RECIPES.get(cfg.recipe, ())):
+    """Set the per-task rows (TASK_DEFAULTS), then the recipe's values on `cfg`, except fields the user
+    gave explicitly. Returns what changed."""
+    changed = {}  # a recipe row may override a per-task row: report the value that stands
+    for name, applies, value, source in (*TASK_DEFAULTS, *RECIPES.get(cfg.recipe, ())):
         if name in explicit or not applies(cfg):
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)
@@ -1635,10 +1654,9 @@ def train(cfg: Config, resume_state: dict | None = None):
             if frame >= next_eval:
                 paused(run_evaluation)
 
-            if frame < cfg.seed_frames:
-                action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
-            else:
-                action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
+            # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
+            # (Agent.act), then the actor plus noise, not yet updated while the seed frames are collected.
+            action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
             # Learning starts once the buffer holds the seed frames' worth of steps: after the random
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and step % cfg.update_every == 0 and buffer.can_sample()

@@ -224,10 +224,12 @@ def test_plot_per_task_draws_one_panel_per_task(mt3_run, tmp_path, capsys):
     assert plot.main([str(run_dir), "--per-task", "--csv", "train", "--out", str(tmp_path / "u.png")]) == 2
 
 
-def test_finetune_starts_from_the_source_networks(mt3_run, tmp_path):
+def test_finetune_starts_from_the_whole_source_agent_by_default(mt3_run, tmp_path):
+    """The authors' default (cfgs/agent/common.yaml pretrain.just_encoder_decoders: false): encoder,
+    decoders, actor and critic; fresh optimisers."""
     source_dir, _ = mt3_run
     args = ["--run-root", str(tmp_path / "runs"), "--env", "metaworld-peg-insert-side", "--init-from",
-            str(source_dir), "--init-parts", "all", *TINY, "--frames", "8", "--seed-frames", "100"]
+            str(source_dir), *TINY, "--frames", "8", "--seed-frames", "100"]
     assert sear.main(args) == 0  # the CLI in this process; no update: the seed frames outlast the budget
     (run_dir,) = (tmp_path / "runs").iterdir()
     config = json.loads((run_dir / "config.json").read_text())
@@ -245,8 +247,7 @@ def test_finetune_starts_from_the_source_networks(mt3_run, tmp_path):
     (["--env", "metaworld-hammer", "--latent-dim", "128"],
      "--init-from: the source run has --latent-dim 64 but this run 128;"),
     (["--env", "metaworld-hammer", "--method", "drq"], "--init-from: the source run has --method sear but this run drq;"),
-    (["--env", "walker-walk", "--init-parts", "all"],
-     "--init-parts all: the source run's actor has 4 actions, walker-walk has 6;"),
+    (["--env", "walker-walk"], "--init-parts all: the source run's actor has 4 actions, walker-walk has 6;"),
 ])
 def test_init_from_refuses_mismatches_and_creates_nothing(mt3_run, tmp_path, capsys, extra, message):
     source_dir, _ = mt3_run

@@ -291,6 +291,23 @@ def test_exploration_std_counts_agent_steps_not_frames(action_repeat):
         assert sear.linear_std(cfg, step) == pytest.approx(std)
 
 
+@pytest.mark.parametrize("env, steps", [
+    ("walker-walk", 100_000), ("cup-catch", 100_000), ("cartpole-balance_sparse", 100_000),   # easy.yaml
+    ("cheetah-run", 500_000), ("walker-run", 500_000), ("reacher-hard", 500_000),           # medium.yaml
+    ("humanoid-run", 2_000_000),                                                            # hard.yaml
+    ("fish-swim", 500_000),               # not in DrQ-v2's table: medium, as its default task
+    ("walker-walk-distracting", 500_000), ("cup-catch-distracting", 500_000),   # the authors' distracting.yaml
+    ("metaworld-door-open", 500_000), ("kitchen-kettle", 500_000), ("adroit-pen", 500_000),
+    ("metaworld-mt10", 2_000_000)])
+def test_exploration_schedule_per_task_as_drqv2(env, steps):
+    """DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml decay the std over 100k / 500k / 2M
+    agent steps by task; the paper's Distracting Control tasks and the manipulation suites keep 500k,
+    task sets 2M. Under both recipes; an explicit --std-steps wins."""
+    for recipe in ("paper", "authors"):
+        assert sear.parse_args(["--env", env, "--recipe", recipe])[0].std_steps == steps
+    assert sear.parse_args(["--env", env, "--std-steps", "7"])[0].std_steps == 7
+
+
 def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     paper, _ = sear.parse_args(["--env", "walker-walk-distracting"])
     assert paper == sear.Config(env="walker-walk-distracting")
@@ -305,6 +322,11 @@ def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     assert mw.discount == pytest.approx(0.99 ** 3) and mw.mask_downsample == "stride"
     kitchen, _ = sear.parse_args(["--env", "kitchen-kettle", "--recipe", "authors"])
     assert kitchen.discount == pytest.approx(0.99 ** 2)
+    humanoid, _ = sear.parse_args(["--env", "humanoid-walk", "--recipe", "authors"])
+    assert (humanoid.lr, humanoid.feature_dim, humanoid.replay_size) == (8e-5, 100, 250_000)  # DrQ-v2's hard cfgs
+    quadruped, _ = sear.parse_args(["--env", "quadruped-run", "--recipe", "authors"])
+    assert (quadruped.lr, quadruped.feature_dim, quadruped.replay_size) == (1e-4, 50, 100_000)
+    assert sear.parse_args(["--env", "humanoid-walk"])[0].lr == 1e-4   # the paper's table
     explicit, _ = sear.parse_args(["--env", "walker-walk", "--recipe", "authors", "--nstep", "3",
                                    "--recon-coef", "0.5"])
     assert (explicit.nstep, explicit.recon_coef, explicit.batch_size) == (3, 0.5, 512)  # flags win
