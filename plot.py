@@ -3,6 +3,7 @@
 Usage:  python plot.py runs/ --out curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py 'runs/cartpole-balance_sparse*' --reference drqv2/curves/dmc_cartpole_balance_sparse.csv
         python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out mt10.png
         python plot.py maps RUN_A [RUN_B ...] --out maps.png [--frames N]   (activation maps, below)
 
@@ -17,6 +18,10 @@ Aligning runs of one group:
              evaluation of every run (a run still in progress truncates its group).
   train.csv  episodes end at different frames in each run, so the curves are linearly
              INTERPOLATED onto the union of their frames, cut to the span all runs cover.
+
+--reference CSV[:LABEL] draws a published curve in DrQ-v2's format (curves/dmc_<task>.csv: seed, frame,
+episode_reward, task): its mean over seeds and a min-max band, on each panel with runs on that task
+(env cartpole-balance_sparse = task cartpole_balance_sparse).
 
 --per-task draws task-set runs (metaworld-mt3/-mt10/-mt50) one panel per task, from eval.csv's
 per-task columns (success/<task>, return/<task>).
@@ -173,7 +178,8 @@ def short_frames(x, _pos=None) -> str:
     return f"{x / 1e6:g}M" if abs(x) >= 1e6 else f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
 
 
-def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None):
+def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None,
+         references: dict | None = None):
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
@@ -191,6 +197,8 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
                 ax.fill_between(frames, mean - ci, mean + ci, color=colors[label], alpha=0.2, lw=0)
         if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
             ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
+        for i, ref in enumerate((references or {}).get(panel, [])):  # --reference: published curves
+            draw_reference(ax, ref, i)
         ax.set_title(panel if len(panels) > 1 else title)
         ax.set_xlabel("frames")
         ax.set_ylabel(ylabel)
@@ -215,6 +223,92 @@ def summary_table(panels: dict, metric: str) -> str:
             final = f"{mean[-1]:.4g}" + ("" if n == 1 else f" ± {ci[-1]:.3g}")
             lines.append(f"| {env} | {label} | {n} | {frames[-1]:.0f} | {final} |")
     return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- published reference curves: --reference
+# A published learning curve in DrQ-v2's format (facebookresearch/drqv2, curves/dmc_<task>.csv): one row
+# per seed and evaluation with columns seed, frame, episode_reward, and task and agent. A file without
+# a task column holds the task its name says (dmc_<task>.csv).
+REFERENCE_COLUMNS = ("seed", "frame", "episode_reward")
+
+
+def task_key(name: str) -> str:
+    """Our env names and DrQ-v2's task names on one key: cartpole-balance_sparse = cartpole_balance_sparse."""
+    return name.strip().lower().replace("-", "_")
+
+
+def parse_reference(spec: str) -> tuple[str, str | None]:
+    """--reference PATH[:LABEL] -> (path, label or None); a path that exists as given keeps its colons."""
+    path, sep, label = spec.rpartition(":")
+    if os.path.exists(spec) or not sep or not path:
+        return spec, None
+    return path, label or None
+
+
+def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
+    """{task key: {"label", "frames", "mean", "min", "max", "seeds"}} of a published curve file. Per task
+    its seeds are aligned on the frames they all have, as eval.csv runs are (aggregate)."""
+    if not os.path.isfile(path):
+        raise PlotError(f"--reference {path}: no such file")
+    file_task = os.path.splitext(os.path.basename(path))[0].removeprefix("dmc_")
+    seeds, agents = {}, {}  # task -> seed -> {frame: return}; task -> agent names
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in REFERENCE_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has columns "
+                            f"{', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv name)")
+        for row in reader:
+            task = task_key(row.get("task") or file_task)
+            try:
+                point = float(row["frame"]), float(row["episode_reward"])
+            except (TypeError, ValueError):
+                raise PlotError(f"--reference {path}: bad row {row}") from None
+            seeds.setdefault(task, {}).setdefault(row["seed"], {})[point[0]] = point[1]
+            agents.setdefault(task, set()).add(row.get("agent") or "")
+    if not seeds:
+        raise PlotError(f"--reference {path}: no rows")
+    curves = {}
+    for task, by_seed in seeds.items():
+        if len(agents[task]) > 1:
+            raise PlotError(f"--reference {path}: {task} has curves of several agents "
+                            f"({', '.join(sorted(agents[task]))}); give one agent per file")
+        frames = reduce(np.intersect1d, [np.array(sorted(points)) for points in by_seed.values()])
+        if len(frames) == 0:
+            raise PlotError(f"--reference {path}: the seeds of {task} share no frames")
+        ys = np.array([[points[x] for x in frames] for points in by_seed.values()])
+        agent = agents[task].pop() or os.path.basename(path)
+        curves[task] = {"label": label or f"{agent} (published)", "frames": frames, "mean": ys.mean(axis=0),
+                        "min": ys.min(axis=0), "max": ys.max(axis=0), "seeds": len(by_seed)}
+    return curves
+
+
+def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]]) -> dict[str, list[dict]]:
+    """{panel: the reference curves drawn on it}: a reference goes on every panel holding a run on its
+    task. `references` are (path, load_reference(path)); one that matches no panel is an error."""
+    drawn = {panel: [] for panel in panel_envs}
+    for path, curves in references:
+        matched = False
+        for panel, envs in panel_envs.items():
+            for task in sorted({task_key(e) for e in envs} & set(curves)):
+                drawn[panel].append(curves[task])
+                matched = True
+        if not matched:
+            plotted = ", ".join(sorted({e for envs in panel_envs.values() for e in envs}))
+            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no plotted env "
+                            f"({plotted})")
+    return drawn
+
+
+def draw_reference(ax, ref: dict, i: int = 0):
+    """A published curve: the mean over its seeds and a band from its lowest to its highest seed. The
+    x range stays the runs' (once they span any frames): a published curve usually goes on far beyond them."""
+    xlim = ax.get_xlim()
+    ax.plot(ref["frames"], ref["mean"], color="k", ls=(":", "-.", "--")[i % 3], lw=1.5, marker="x", ms=4,
+            label=f"{ref['label']} (n={ref['seeds']}: mean, min-max)")
+    ax.fill_between(ref["frames"], ref["min"], ref["max"], color="k", alpha=0.08, lw=0)
+    if xlim[1] >= 1:
+        ax.set_xlim(xlim)
 
 
 # ---------------------------------------------------------------- activation maps: plot.py maps
@@ -486,9 +580,13 @@ def main(argv=None) -> int:
                         help="task sets: one panel per task, from eval.csv's <metric>/<task> columns")
     parser.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
                         help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
+    parser.add_argument("--reference", action="append", default=[], metavar="CSV[:LABEL]",
+                        help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and min-max "
+                             "band over its seeds, on the panels of its task; repeatable")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = parser.parse_args(argv)
     try:
+        references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
         baseline = None
         if args.baseline is not None:
             value, _, label = args.baseline.partition(":")
@@ -537,7 +635,8 @@ def main(argv=None) -> int:
                                         len(group), envs_of_group)
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        plot(panels, args.out, ylabel, title, baseline)
+        drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references)
+        plot(panels, args.out, ylabel, title, baseline, drawn)
     except PlotError as e:
         print(f"plot.py: error: {e}", file=sys.stderr)
         return 2

@@ -162,16 +162,16 @@ def test_evaluation_runs_every_task():
 
 # ---------------------------------------------------------------- transfer
 @pytest.mark.parametrize("parts", ["encoder", "encoder+decoders", "all"])
-def test_copy_parts_copies_exactly_the_named_parts(parts):
+def test_copy_parts_copies_exactly_the_named_parts(parts, device):
     cfg = sear.Config(latent_dim=64, hidden_dim=32, feature_dim=8)
     torch.manual_seed(0)
-    source = sear.Agent(cfg, 4, torch.device("cpu"))
+    source = sear.Agent(cfg, 4, device)
     with torch.no_grad():  # stands for training: every weight moves
         for net in (source.encoder, source.aux, source.actor, source.critic, source.critic_target):
             for p in net.parameters():
                 p.add_(1.0)
     torch.manual_seed(1)
-    agent = sear.Agent(cfg, 4, torch.device("cpu"))
+    agent = sear.Agent(cfg, 4, device)
     fresh = {k: {n: v.clone() for n, v in sd.items()} for k, sd in agent.state_dict().items()
              if k in ("encoder", "aux", "actor", "critic", "critic_target")}
     sear.copy_parts(agent, source.state_dict(), parts)

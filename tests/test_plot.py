@@ -239,3 +239,88 @@ def test_load_run_skips_empty_cells(tmp_path):
     run = plot.load_run(str(d))
     np.testing.assert_array_equal(run["frames"], [10000])
     np.testing.assert_array_equal(run["values"], [7.5])
+
+
+# ---------------------------------------------------------------- --reference: published curves
+def write_published(path, rows, task_column=True):
+    """A curve file as facebookresearch/drqv2 ships them (curves/dmc_<task>.csv): an index column,
+    agent, task, seed, frame, episode_reward, hour. rows: (task, seed, frame, return)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["", "agent", *(["task"] if task_column else []), "seed", "frame", "episode_reward", "hour"])
+        for i, (task, seed, frame, ret) in enumerate(rows):
+            w.writerow([i, "DrQ-v2", *([task] if task_column else []), seed, frame, ret, frame / 4e5])
+    return path
+
+
+def published_rows(task="cartpole_balance_sparse"):
+    """3 seeds at 0/20k/40k frames; seed 3 also has 60k, which the others lack."""
+    values = {1: (50, 100, 1000), 2: (30, 400, 900), 3: (40, 700, 950)}
+    rows = [(task, s, f, v) for s, vs in values.items() for f, v in zip((0, 20000, 40000), vs)]
+    return rows + [(task, 3, 60000, 1000)]
+
+
+def test_load_reference_mean_and_min_max_over_seeds_on_their_common_frames(tmp_path):
+    path = write_published(tmp_path / "dmc_cartpole_balance_sparse.csv", published_rows())
+    curves = plot.load_reference(str(path))
+    assert list(curves) == ["cartpole_balance_sparse"]
+    ref = curves["cartpole_balance_sparse"]
+    np.testing.assert_array_equal(ref["frames"], [0, 20000, 40000])  # 60k: one seed only
+    np.testing.assert_allclose(ref["mean"], [40, 400, 950])
+    np.testing.assert_allclose(ref["min"], [30, 100, 900])
+    np.testing.assert_allclose(ref["max"], [50, 700, 1000])
+    assert ref["seeds"] == 3 and ref["label"] == "DrQ-v2 (published)"
+    assert plot.load_reference(str(path), "theirs")["cartpole_balance_sparse"]["label"] == "theirs"
+
+
+def test_reference_without_task_column_takes_the_task_from_the_file_name(tmp_path):
+    path = write_published(tmp_path / "dmc_walker_stand.csv", published_rows("walker_stand"), task_column=False)
+    assert list(plot.load_reference(str(path))) == ["walker_stand"]
+
+
+def test_parse_reference_label_and_paths_with_colons(tmp_path):
+    assert plot.parse_reference("a/dmc_x.csv:DrQ-v2 paper") == ("a/dmc_x.csv", "DrQ-v2 paper")
+    assert plot.parse_reference("a/dmc_x.csv") == ("a/dmc_x.csv", None)
+    odd = tmp_path / "run:1.csv"
+    odd.write_text("")
+    assert plot.parse_reference(str(odd)) == (str(odd), None)
+
+
+def test_reference_is_drawn_on_the_panel_of_its_task_only(tmp_path, capsys, monkeypatch):
+    root = tmp_path / "runs"
+    for seed in (1, 2):
+        make_run(root, "walker-walk", "drq", seed)
+        make_run(root, "cartpole-balance_sparse", "drq", seed, frames=(0, 10000, 20000, 30000))
+    path = write_published(tmp_path / "dmc_cartpole_balance_sparse.csv", published_rows())
+    drawn = []
+    real = plot.draw_reference
+    monkeypatch.setattr(plot, "draw_reference", lambda ax, ref, i=0: drawn.append((ax.get_title(), ref, ax))
+                        or real(ax, ref, i))
+    code, _, err = run_main(capsys, root, "--out", tmp_path / "x.png", "--reference", f"{path}:DrQ-v2 paper")
+    assert code == 0, err
+    assert [(title, ref["label"]) for title, ref, _ in drawn] == [("", "DrQ-v2 paper")]  # title is set after
+    ax = drawn[0][2]
+    assert ax.get_title() == "cartpole-balance_sparse"
+    mean_line = next(line for line in ax.get_lines() if line.get_label().startswith("DrQ-v2 paper"))
+    np.testing.assert_allclose(mean_line.get_ydata(), [40, 400, 950])
+    assert mean_line.get_label() == "DrQ-v2 paper (n=3: mean, min-max)"
+    assert ax.get_xlim()[1] < 40000  # the runs' range (30k frames), not the published curve's
+    assert (tmp_path / "x.png").read_bytes().startswith(PNG_MAGIC)
+
+
+@pytest.mark.parametrize("breakage", ["no file", "no episode_reward", "other task", "two agents", "bad frame"])
+def test_bad_reference_is_one_line_exit_2(runs, tmp_path, capsys, breakage):
+    path = tmp_path / "dmc_walker_walk.csv"
+    rows = published_rows("walker_walk")
+    if breakage == "no episode_reward":
+        path.write_text(",agent,task,seed,frame,return\n0,DrQ-v2,walker_walk,1,0,3.0\n")
+    elif breakage == "other task":
+        write_published(path, published_rows("cartpole_balance"))
+    elif breakage in ("two agents", "bad frame"):
+        write_published(path, rows)
+        extra = "99,CURL,walker_walk,1,0,5.0,0" if breakage == "two agents" else "99,DrQ-v2,walker_walk,1,soon,5.0,0"
+        path.write_text(path.read_text() + extra + "\n")
+    code, _, err = run_main(capsys, runs, "--out", tmp_path / "x.png", "--reference", path)
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("plot.py: error: --reference"), err
+    assert not (tmp_path / "x.png").exists()
