@@ -24,7 +24,8 @@ if ! ours; then
 fi
 [ "$(id -u)" = 0 ] || { say "must run as root (it installs packages and starts daemons)" >&2; exit 1; }
 
-missing=$(for p in slurmctld slurmd slurm-client munge; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done)
+installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q 'install ok installed'; }
+missing=$(for p in slurmctld slurmd slurm-client munge; do installed "$p" || echo "$p"; done)
 if [ -n "$missing" ]; then
     say "installing" $missing
     # No init system in a container: keep the packages' scripts from starting the daemons themselves.
