@@ -44,9 +44,9 @@ class RunConfig:
                                   "mask | predicted mask | reconstruction (the panels the method has)")
     init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
                              "metaworld-mt10); method and network sizes follow that run unless given")
-    init_parts: str = arg("encoder+decoders", "with --init-from, what to copy: encoder | encoder+decoders (the "
-                                              "method's auxiliary networks too; the authors' fine-tuning) | all "
-                                              "(also actor and critic); the rest and the optimisers start fresh",
+    init_parts: str = arg("all", "with --init-from, what to copy: encoder | encoder+decoders (the method's "
+                                 "auxiliary networks too) | all (also actor and critic: the authors' default, "
+                                 "just_encoder_decoders false); the rest and the optimisers start fresh",
                           tuple(INIT_PARTS))
     log_every: float = arg(10.0, "seconds between progress lines")
     snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at the next "
@@ -66,6 +66,10 @@ class Interrupted(Exception):
 # ------------------------------------------------------------------------------------------------
 def _walker(cfg):
     return cfg.env.startswith("walker-")
+
+
+def _humanoid(cfg):
+    return cfg.env in ("humanoid-run", "humanoid-stand", "humanoid-walk")
 
 
 def _manipulation(cfg):
@@ -90,31 +94,43 @@ RECIPES = {"authors": (
     ("mask_coef", lambda cfg: True, 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
     ("nstep", _walker, 1, "sear/cfgs/task/distracting_walker_walk.yaml: nstep (DrQ-v2's walker config)"),
     ("batch_size", _walker, 512, "sear/cfgs/task/distracting_walker_walk.yaml: batch_size"),
+    ("lr", _humanoid, 8e-5, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: lr (DrQ-v2's)"),
+    ("feature_dim", _humanoid, 100, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: feature_dim (DrQ-v2's)"),
+    ("replay_size", lambda cfg: cfg.env == "quadruped-run", 100_000,
+     "sear/cfgs/task/quadruped_run.yaml: replay_buffer_size (DrQ-v2's)"),
     # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the
     # replay multiplies by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
     ("discount", _manipulation, _authors_discount,
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
-    # The paper's multi-task latent is 512 (MULTITASK below); the authors' code keeps 4096 there too.
+    # The paper's multi-task latent is 512 (TASK_DEFAULTS below); the authors' code keeps 4096 there too.
     ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
 )}
 
 
-# The paper's multi-task settings (its hyper-parameter table), applied under both recipes before the
-# recipe's own rows: the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x
-# longer exploration schedule. The authors' code keeps latent 4096 there (its row in RECIPES).
-MULTITASK = (
+def _drqv2_std_steps(cfg):
+    import envs  # DrQ-v2's per-task table lives with the other suite facts; late so --help needs no MuJoCo
+    return envs.exploration_std_steps(cfg.env)
+
+
+# Per-task defaults, applied under both recipes before the recipe's own rows. The paper's multi-task
+# settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller
+# latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
+# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task.
+TASK_DEFAULTS = (
     ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
     ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
+    ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
+     "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
 )
 
 
 def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
-    """Set the multi-task rows, then the recipe's values on `cfg`, except fields the user gave
-    explicitly. Returns what changed."""
-    changed = {}  # a recipe row may override a multi-task row: report the value that stands
-    for name, applies, value, source in (*MULTITASK, *RECIPES.get(recipe, ())):
+    """Set the per-task rows (TASK_DEFAULTS), then the recipe's values on `cfg`, except fields the user
+    gave explicitly. Returns what changed."""
+    changed = {}  # a recipe row may override a per-task row: report the value that stands
+    for name, applies, value, source in (*TASK_DEFAULTS, *RECIPES.get(recipe, ())):
         if name in explicit or not applies(cfg):
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)

@@ -76,7 +76,8 @@ from scipy import ndimage
 
 __all__ = [
     "EnvError", "env_names", "default_action_repeat", "is_task_set", "metaworld_set_tasks", "make_env", "SEAREnv",
-    "robot_geoms", "robot_pixels", "downsample_mask", "procedural_background",
+    "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
+    "d4rl_reward", "exploration_std_steps",
 ]
 
 
@@ -121,6 +122,23 @@ _METAWORLD_SETS = ("mt3", "mt10", "mt50")
 _MT3_TASKS = ("button-press-topdown-wall", "door-open", "hammer")
 _ADROIT_TASKS = {"door": "AdroitHandDoor-v1", "hammer": "AdroitHandHammer-v1",
                  "pen": "AdroitHandPen-v1", "relocate": "AdroitHandRelocate-v1"}
+# Episode lengths of D4RL's <task>-human-v1, the authors' Adroit tasks (d4rl/hand_manipulation_suite/
+# __init__.py, MAX_STEPS); gymnasium-robotics registers 200 for all four.
+_ADROIT_EPISODE_STEPS = {"door": 200, "hammer": 200, "pen": 100, "relocate": 200}
+# D4RL's pen episode ends when the pen falls below this height (pen_v0.py, step).
+_PEN_DROP_HEIGHT = 0.075
+
+# DrQ-v2's exploration schedule by task difficulty: std 1.0 -> 0.1 over this many agent steps
+# (facebookresearch/drqv2 cfgs/task/{easy,medium,hard}.yaml, stddev_schedule; the per-task cfgs say
+# which file each task takes, and sear-rl/sear-rl's cfgs/task are the same).  Tasks not listed take
+# medium, DrQ-v2's default task (quadruped_walk) being one.
+_DRQV2_STD_STEPS = {"easy": 100_000, "medium": 500_000, "hard": 2_000_000}
+_DRQV2_DIFFICULTY = {
+    **dict.fromkeys(["cartpole-balance", "cartpole-balance_sparse", "cartpole-swingup", "cup-catch",
+                     "finger-spin", "hopper-stand", "pendulum-swingup", "walker-stand", "walker-walk"],
+                    "easy"),
+    **dict.fromkeys(["humanoid-run", "humanoid-stand", "humanoid-walk"], "hard"),
+}
 
 # Original Distracting Control Suite difficulty settings.  Number of background
 # videos (None = all videos of the split) and the scale of the optional camera
@@ -231,6 +249,19 @@ def is_task_set(name: str) -> bool:
     return name.startswith("metaworld-") and name[len("metaworld-"):] in _METAWORLD_SETS
 
 
+def exploration_std_steps(name: str) -> int | None:
+    """The agent steps over which DrQ-v2 decays the exploration std on a plain dm_control task
+    (100k easy, 500k medium, 2M hard); None for other suites and unknown names.  Distracting
+    Control is not in DrQ-v2's table: the authors' distracting.yaml keeps 500k for every task."""
+    try:
+        suite, args = _parse_name(name)
+    except EnvError:
+        return None
+    if suite != "dmc":
+        return None
+    return _DRQV2_STD_STEPS[_DRQV2_DIFFICULTY.get(_dmc_name(*args), "medium")]
+
+
 def default_action_repeat(name: str) -> int:
     """2 for dm_control / Distracting Control / Meta-World, 1 for Kitchen / Adroit."""
     suite, _ = _parse_name(name)
@@ -295,17 +326,20 @@ def downsample_mask(mask: np.ndarray, factor: int, mode: str = "majority") -> np
     return blocks.sum(axis=(1, 3)) * 2 > factor * factor
 
 
-def _approximate_mask(mask: np.ndarray) -> np.ndarray:
-    """The paper's "approximate mask": coarse, blurry, re-thresholded.
+def approximate_mask(mask: np.ndarray, factor: int = 3, sigma: float = 0.5,
+                     threshold: float = 0.9) -> np.ndarray:
+    """The paper's "approximate mask": downsample, upsample, Gaussian blur, threshold.
 
-    Downsample 4x (area), upsample back (bilinear), gaussian blur, threshold
-    at 0.5.  Keeps the rough robot shape but loses thin parts and detail.
+    The paper gives no numbers; these are the authors' (``SlimMaskWrapper`` in
+    sear/environments/wrappers.py, ``slim_mask_cfg`` in cfgs/train_config.yaml): bilinear
+    resampling without anti-aliasing (skimage's ``rescale``: pixel centres aligned, edges
+    mirrored) down by 3 and back up, sigma 0.5, threshold 0.9.  The high threshold erodes the
+    mask: edges and thin parts go.
     """
-    h, w = mask.shape
-    small = Image.fromarray(mask.astype(np.uint8) * 255).resize(
-        (max(1, w // 4), max(1, h // 4)), Image.BOX)
-    big = np.asarray(small.resize((w, h), Image.BILINEAR), dtype=np.float32) / 255.0
-    return ndimage.gaussian_filter(big, sigma=1.5) > 0.5
+    m = mask.astype(np.float64)
+    small = ndimage.zoom(m, 1 / factor, order=1, mode="mirror", grid_mode=True)
+    big = ndimage.zoom(small, np.divide(m.shape, small.shape), order=1, mode="mirror", grid_mode=True)
+    return ndimage.gaussian_filter(big, sigma, mode="nearest") > threshold
 
 
 # ----------------------------------------------------------------------------
@@ -592,8 +626,58 @@ class _DMCBackend:
         self.physics.free()
 
 
+def _dist(a, b) -> float:
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)))
+
+
+def d4rl_reward(task: str, data: mujoco.MjData) -> float:
+    """D4RL's dense reward of an Adroit task, from the simulator state after a step
+    (d4rl/hand_manipulation_suite/<task>_v0.py, ``step``; bonuses on, as in D4RL).
+
+    Computed here rather than taken from gymnasium-robotics: its AdroitHand{Door,Hammer,Relocate}-v1
+    (1.4.2) flip the sign of the hand-to-object term and so pay the hand for moving away from the
+    handle, hammer or ball (Gymnasium-Robotics PR #220). The authors trained on D4RL's envs.
+    """
+    palm = data.site("S_grasp").xpos
+    if task == "door":
+        door = float(data.joint("door_hinge").qpos[0])
+        reward = -0.1 * _dist(palm, data.site("S_handle").xpos)     # get to the handle
+        reward -= 0.1 * (door - 1.57) ** 2                            # open the door
+        reward -= 1e-5 * float(np.sum(data.qvel ** 2))                # velocity cost
+        return reward + 2 * (door > 0.2) + 8 * (door > 1.0) + 10 * (door > 1.35)
+    if task == "hammer":
+        hammer, tool = data.body("Object").xpos, data.site("tool").xpos
+        nail, goal = data.site("S_target").xpos, data.site("nail_goal").xpos
+        reward = -0.1 * _dist(palm, hammer)                           # get to the hammer
+        reward -= _dist(tool, nail)                                   # hammer head to the nail
+        reward -= 10 * _dist(nail, goal)                              # nail into the board
+        reward -= 1e-2 * float(np.linalg.norm(data.qvel))             # velocity cost
+        reward += 2 * (hammer[2] > 0.04 and tool[2] > 0.04)           # hammer lifted
+        return reward + 25 * (_dist(nail, goal) < 0.02) + 75 * (_dist(nail, goal) < 0.01)
+    if task == "relocate":
+        ball, target = data.body("Object").xpos, data.site("target").xpos
+        reward = -0.1 * _dist(palm, ball)                             # hand to the ball
+        if ball[2] > 0.04:                                            # lifted: carry it to the target
+            reward += 1.0 - 0.5 * _dist(palm, target) - 0.5 * _dist(ball, target)
+        return reward + 10 * (_dist(ball, target) < 0.1) + 20 * (_dist(ball, target) < 0.05)
+    if task == "pen":
+        # Orientations are the unit vectors bottom -> top of the pen and of the target pen.
+        pen = data.site("object_top").xpos - data.site("object_bottom").xpos
+        want = data.site("target_top").xpos - data.site("target_bottom").xpos
+        similarity = float(np.dot(pen, want) / (np.linalg.norm(pen) * np.linalg.norm(want)))
+        dist = _dist(data.body("Object").xpos, data.site("eps_ball").xpos)
+        reward = -dist + similarity
+        reward += 10 * (dist < 0.075 and similarity > 0.9) + 50 * (dist < 0.075 and similarity > 0.95)
+        return reward - 5 * (data.body("Object").xpos[2] < _PEN_DROP_HEIGHT)   # dropped
+    raise ValueError(f"no Adroit task {task!r}")
+
+
 class _GymBackend:
-    """Gymnasium-Robotics Kitchen / Adroit via gym.make (TimeLimit included)."""
+    """Gymnasium-Robotics Kitchen / Adroit via gym.make (TimeLimit included).
+
+    Adroit follows D4RL's <task>-human-v1 (the authors' envs): D4RL's reward (``d4rl_reward``),
+    its episode lengths, and the pen episode ends when the pen drops, as a truncation: the
+    authors' wrapper (adroit_dm_env.py) ends every D4RL ``done`` with dm_env.truncation."""
 
     flip = False
     mask_scale = 3
@@ -624,10 +708,11 @@ class _GymBackend:
                 cam.azimuth, cam.elevation = _KITCHEN_CAMERA_FIXED
                 self.camera = cam
             else:
-                self.env = gym.make(_ADROIT_TASKS[task], disable_env_checker=True)
+                self.env = gym.make(_ADROIT_TASKS[task], max_episode_steps=_ADROIT_EPISODE_STEPS[task],
+                                    disable_env_checker=True)
                 self.robot_root = "forearm"
                 self.camera = "fixed"
-        self.suite = suite
+        self.suite, self.task = suite, task
         u = self.env.unwrapped
         self.model, self.data = u.model, u.data
         self.action_dim = int(self.env.action_space.shape[0])
@@ -654,7 +739,11 @@ class _GymBackend:
             # is not absorbing, the agent bootstraps from it.  So do we.
             truncated, terminated = truncated or terminated, False
         else:
-            success = bool(info["success"])   # Adroit's goal_achieved
+            success = bool(info["success"])   # Adroit's goal_achieved (D4RL's)
+            reward = d4rl_reward(self.task, self.data)
+            # D4RL's pen ends when the pen drops; the authors' wrapper makes that a truncation.
+            dropped = self.task == "pen" and self.data.body("Object").xpos[2] < _PEN_DROP_HEIGHT
+            truncated = truncated or bool(dropped)
         return float(reward), bool(terminated), bool(truncated), {"success": success}
 
     def close(self):
@@ -918,7 +1007,7 @@ class SEAREnv(gym.Env):
     def _corrupt(self, mask: np.ndarray) -> np.ndarray:
         """The paper's robustness ablations, applied to the mask whatever its source."""
         if self.mask_approx:
-            mask = _approximate_mask(mask)
+            mask = approximate_mask(mask)
         if self.mask_noise > 0:
             mask = mask & (self._rng.random(mask.shape) >= self.mask_noise)
         return mask

@@ -3,23 +3,32 @@
 Usage:  python plot.py runs/ --out curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py 'runs/cartpole-balance_sparse*' --reference drqv2/curves/dmc_cartpole_balance_sparse.csv
         python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out mt10.png
         python plot.py maps RUN_A [RUN_B ...] --out maps.png [--frames N]   (activation maps, below)
 
 Arguments are run directories (holding config.json), parent folders (every folder below holding a
-config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"); each
-group is one line: the mean over its runs and, with 2+ runs, a shaded 95% t-interval of the mean
-(mean +- t_{0.975, n-1} * std / sqrt(n)). With runs on several envs and env not a grouping key,
-each env gets its own subplot.
+config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"), and a
+group whose runs differ in any other config value (say --mask-source) is split by it, the legend
+naming the values ("sear mask_source=learned:seg.pt"); only the seed, the budget, the device and
+logging settings (NOT_A_SETTING) may differ within a line. Each line is the mean over its runs and,
+with 2+ runs, a shaded 95% t-interval of the mean (mean +- t_{0.975, n-1} * std / sqrt(n)). With runs
+on several envs and env not a grouping key, each env gets its own subplot. Success rates are drawn
+on a [0, 1] axis.
 
-Aligning runs of one group:
-  eval.csv   the INTERSECTION of the runs' evaluation frames, so every plotted point is a real
-             evaluation of every run (a run still in progress truncates its group).
-  train.csv  episodes end at different frames in each run, so the curves are linearly
-             INTERPOLATED onto the union of their frames, cut to the span all runs cover.
+Each run is drawn to its own end: at every frame the mean and CI are over the runs that have a value
+there (n per frame), the line is dashed where not all of them do, the table says how many reached
+the last frame, and stderr warns which runs end early.
+  eval.csv   the UNION of the runs' evaluation frames: every point averages real evaluations.
+  train.csv  episodes end at different frames in each run, so each curve is linearly INTERPOLATED
+             onto the union of the frames, within its own span.
+
+--reference CSV[:LABEL] draws a published curve in DrQ-v2's format (curves/dmc_<task>.csv: seed, frame,
+episode_reward, task): its mean over seeds and a min-max band, on each panel with runs on that task
+(env cartpole-balance_sparse = task cartpole_balance_sparse).
 
 --per-task draws task-set runs (metaworld-mt3/-mt10/-mt50) one panel per task, from eval.csv's
-per-task columns (success/<task>, return/<task>).
+per-task columns (success/<task>, return/<task>), and a last panel with each run's mean over tasks.
 
 `plot.py maps` draws what the encoder's last convolution responds to, for runs on one env and on
 the same frames (the paper's section 5), and measures each channel's share of activation on the
@@ -134,23 +143,40 @@ def t_quantile(p: float, df: int) -> float:
     return float(stats.t.ppf(p, df))
 
 
+def stack_curves(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False):
+    """(frames, values): the union of the curves' frames, and each curve on them (NaN where it has no
+    value). eval.csv: a value only at a curve's own evaluation frames, so every point is a real
+    evaluation; train.csv (interpolate): linearly interpolated within the curve's own span."""
+    if not curves:
+        raise PlotError("no runs to average")
+    grid = np.unique(np.concatenate([f for f, _ in curves]))
+    ys = np.full((len(curves), len(grid)), np.nan)
+    for row, (f, v) in zip(ys, curves):
+        if interpolate:
+            inside = (grid >= f[0]) & (grid <= f[-1])
+            row[inside] = np.interp(grid[inside], f, v)
+        else:
+            row[np.isin(grid, f)] = v  # both sorted and unique: same order
+    return grid, ys
+
+
 def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False):
-    """(frames, mean, ci) of (frames, values) curves; ci is the 95% half-width, NaN for 1 curve."""
-    if interpolate:
-        lo, hi = max(f[0] for f, _ in curves), min(f[-1] for f, _ in curves)
-        grid = np.unique(np.concatenate([f for f, _ in curves]))
-        grid = grid[(grid >= lo) & (grid <= hi)]
-        ys = np.stack([np.interp(grid, f, v) for f, v in curves])
-    else:
-        grid = reduce(np.intersect1d, [f for f, _ in curves])
-        ys = np.stack([v[np.isin(f, grid)] for f, v in curves])
-    if len(grid) == 0:
-        raise PlotError("runs of one group share no frames: cannot average them")
-    n = len(curves)
-    mean = ys.mean(axis=0)
-    ci = (t_quantile(0.975, n - 1) * ys.std(axis=0, ddof=1) / math.sqrt(n) if n > 1
-          else np.full_like(mean, np.nan))
+    """(frames, mean, ci) of (frames, values) curves, each drawn to its own end: at every frame the
+    mean and the 95% half-width over the curves that have it (coverage() counts them); ci is NaN
+    where only one has."""
+    grid, ys = stack_curves(curves, interpolate)
+    n = np.sum(~np.isnan(ys), axis=0)
+    mean = np.nanmean(ys, axis=0)
+    ci = np.full_like(mean, np.nan)
+    for k in np.unique(n[n > 1]):
+        at = n == k
+        ci[at] = t_quantile(0.975, k - 1) * np.nanstd(ys[:, at], axis=0, ddof=1) / math.sqrt(k)
     return grid, mean, ci
+
+
+def coverage(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False) -> np.ndarray:
+    """How many of the curves have a value at each of aggregate()'s frames."""
+    return np.sum(~np.isnan(stack_curves(curves, interpolate)[1]), axis=0)
 
 
 def env_of(run: dict) -> str:
@@ -168,12 +194,93 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
     return dict(sorted(groups.items()))
 
 
+# Config values that do not change what a run learns (sear.py's RESUME_MAY_CHANGE: device, budget,
+# logging), plus the seed and where the run lives: runs that differ only in these are seeds of one line.
+NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
+                 "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate"}
+
+
+def split_by_config(label: str, group: list[dict], keys: list[str]) -> dict[str, list[dict]]:
+    """One line per setting: the runs of a group split by every config value that differs among them
+    (apart from NOT_A_SETTING and the grouping keys), the label naming them, e.g.
+    "sear mask_source=learned:seg.pt". A group whose runs agree keeps its label."""
+    configs = [r["config"] for r in group]
+    names = sorted({k for c in configs for k in c} - NOT_A_SETTING - set(keys) - {"env"})
+    # A key some configs lack came with a later version of sear.py: only the runs that record it can differ in it.
+    differ = [k for k in names if len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1]
+    if not differ:
+        return {label: group}
+    lines = {}
+    for run in group:
+        values = " ".join(f"{k}={run['config'].get(k, 'unset')}" for k in differ)
+        lines.setdefault(f"{label} {values}", []).append(run)
+    return dict(sorted(lines.items()))
+
+
+def warn_uneven_ends(label: str, group: list[dict]) -> None:
+    """Runs of one line that stop at different frames are each drawn to their own end: say so."""
+    ends = [int(r["frames"][-1]) for r in group]
+    if len(set(ends)) > 1:
+        counts = ", ".join(f"{e}" + (f" (x{ends.count(e)})" if ends.count(e) > 1 else "")
+                           for e in sorted(set(ends)))
+        print(f"plot.py: warning: {label}: runs end at frames {counts}; each is drawn to its own end, the mean "
+              f"and CI at a frame are over the runs that reached it (dashed where not all did)", file=sys.stderr)
+
+
+def task_mean_runs(task_runs: list[dict]) -> list[dict]:
+    """--per-task: per run, the mean over its tasks at the frames where every task has a value, as
+    one more "task" (its own panel)."""
+    by_dir = {}
+    for r in task_runs:
+        by_dir.setdefault(r["dir"], []).append(r)
+    means = []
+    for d, tasks in by_dir.items():
+        frames = tasks[0]["frames"]
+        for t in tasks[1:]:
+            frames = np.intersect1d(frames, t["frames"])
+        if len(frames) == 0:
+            continue
+        values = np.mean([t["values"][np.isin(t["frames"], frames)] for t in tasks], axis=0)
+        means.append({"dir": d, "config": tasks[0]["config"], "frames": frames, "values": values,
+                      "task": f"mean over {len(tasks)} tasks"})
+    return means
+
+
 # ---------------------------------------------------------------- plotting
 def short_frames(x, _pos=None) -> str:
     return f"{x / 1e6:g}M" if abs(x) >= 1e6 else f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
 
 
-def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None):
+def band(mean: np.ndarray, ci: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of a line: ci is a half-width per frame, or (2, frames) bounds (a bootstrap's)."""
+    ci = np.asarray(ci, dtype=float)
+    return (ci[0], ci[1]) if ci.ndim == 2 else (mean - ci, mean + ci)
+
+
+def draw_line(ax, frames, mean, ci, n, color: str, label: str) -> bool:
+    """A group's mean and 95% band; dashed where not all of its runs have reached the frame (n: runs
+    per frame, or one count). True if some part is dashed."""
+    n = np.broadcast_to(np.asarray(n), np.shape(frames))
+    full = n == n.max()
+    ax.plot(frames, np.where(full, mean, np.nan), color=color, label=f"{label} (n={n.max()})")
+    partial = ~full
+    if partial.any():  # the dashed part joins the solid one at its neighbouring points
+        joined = partial | np.convolve(partial, [1, 1, 1], mode="same").astype(bool)
+        ax.plot(frames, np.where(joined, mean, np.nan), color=color, ls="--", lw=1)
+    lo, hi = band(mean, ci)
+    if n.max() > 1:
+        ax.fill_between(frames, lo, hi, color=color, alpha=0.2, lw=0)
+    return bool(partial.any())
+
+
+def rate_axis(ax, ylabel: str) -> None:
+    """A success rate lies in [0, 1]: no axis below 0 or above 1, whatever the band does."""
+    if ylabel.endswith("success rate"):
+        ax.set_ylim(0.0, 1.0)
+
+
+def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None,
+         references: dict | None = None):
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
@@ -185,18 +292,21 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
     rows = math.ceil(len(panels) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
     for ax, (panel, curves) in zip(axes.flat, panels.items()):
+        dashed = False
         for label, (frames, mean, ci, n, _env) in curves.items():
-            ax.plot(frames, mean, color=colors[label], label=f"{label} (n={n})")
-            if n > 1:
-                ax.fill_between(frames, mean - ci, mean + ci, color=colors[label], alpha=0.2, lw=0)
+            dashed |= draw_line(ax, frames, mean, ci, n, colors[label], label)
         if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
             ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
+        for i, ref in enumerate((references or {}).get(panel, [])):  # --reference: published curves
+            draw_reference(ax, ref, i)
         ax.set_title(panel if len(panels) > 1 else title)
         ax.set_xlabel("frames")
         ax.set_ylabel(ylabel)
         ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small", title="mean ± 95% CI", title_fontsize="small")
+        rate_axis(ax, ylabel)
+        ax.legend(fontsize="small", title="mean ± 95% CI" + ("; dashed: fewer runs" if dashed else ""),
+                  title_fontsize="small")
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
     if len(panels) > 1:
@@ -208,13 +318,102 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
 
 
 def summary_table(panels: dict, metric: str) -> str:
+    """One row per line: its runs (and how many reached its last frame, if not all) and its final value."""
     lines = [f"| env | group | seeds | last frame | final {metric} (mean ± 95% CI) |",
              "|---|---|---|---|---|"]
     for curves in panels.values():
         for label, (frames, mean, ci, n, env) in curves.items():
-            final = f"{mean[-1]:.4g}" + ("" if n == 1 else f" ± {ci[-1]:.3g}")
-            lines.append(f"| {env} | {label} | {n} | {frames[-1]:.0f} | {final} |")
+            n = np.broadcast_to(np.asarray(n), np.shape(frames))
+            seeds = f"{n.max()}" + (f" ({n[-1]} at the last frame)" if n[-1] < n.max() else "")
+            final = f"{mean[-1]:.4g}" + ("" if n[-1] == 1 else f" ± {ci[-1]:.3g}")
+            lines.append(f"| {env} | {label} | {seeds} | {frames[-1]:.0f} | {final} |")
     return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- published reference curves: --reference
+# A published learning curve in DrQ-v2's format (facebookresearch/drqv2, curves/dmc_<task>.csv): one row
+# per seed and evaluation with columns seed, frame, episode_reward, and task and agent. A file without
+# a task column holds the task its name says (dmc_<task>.csv).
+REFERENCE_COLUMNS = ("seed", "frame", "episode_reward")
+
+
+def task_key(name: str) -> str:
+    """Our env names and DrQ-v2's task names on one key: cartpole-balance_sparse = cartpole_balance_sparse."""
+    return name.strip().lower().replace("-", "_")
+
+
+def parse_reference(spec: str) -> tuple[str, str | None]:
+    """--reference PATH[:LABEL] -> (path, label or None); a path that exists as given keeps its colons."""
+    path, sep, label = spec.rpartition(":")
+    if os.path.exists(spec) or not sep or not path:
+        return spec, None
+    return path, label or None
+
+
+def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
+    """{task key: {"label", "frames", "mean", "min", "max", "seeds"}} of a published curve file. Per task
+    its seeds are aligned on the frames they all have, as eval.csv runs are (aggregate)."""
+    if not os.path.isfile(path):
+        raise PlotError(f"--reference {path}: no such file")
+    file_task = os.path.splitext(os.path.basename(path))[0].removeprefix("dmc_")
+    seeds, agents = {}, {}  # task -> seed -> {frame: return}; task -> agent names
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in REFERENCE_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has columns "
+                            f"{', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv name)")
+        for row in reader:
+            task = task_key(row.get("task") or file_task)
+            try:
+                point = float(row["frame"]), float(row["episode_reward"])
+            except (TypeError, ValueError):
+                raise PlotError(f"--reference {path}: bad row {row}") from None
+            seeds.setdefault(task, {}).setdefault(row["seed"], {})[point[0]] = point[1]
+            agents.setdefault(task, set()).add(row.get("agent") or "")
+    if not seeds:
+        raise PlotError(f"--reference {path}: no rows")
+    curves = {}
+    for task, by_seed in seeds.items():
+        if len(agents[task]) > 1:
+            raise PlotError(f"--reference {path}: {task} has curves of several agents "
+                            f"({', '.join(sorted(agents[task]))}); give one agent per file")
+        frames = reduce(np.intersect1d, [np.array(sorted(points)) for points in by_seed.values()])
+        if len(frames) == 0:
+            raise PlotError(f"--reference {path}: the seeds of {task} share no frames")
+        ys = np.array([[points[x] for x in frames] for points in by_seed.values()])
+        agent = agents[task].pop() or os.path.basename(path)
+        curves[task] = {"label": label or f"{agent} (published)", "frames": frames, "mean": ys.mean(axis=0),
+                        "min": ys.min(axis=0), "max": ys.max(axis=0), "seeds": len(by_seed)}
+    return curves
+
+
+def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]]) -> dict[str, list[dict]]:
+    """{panel: the reference curves drawn on it}: a reference goes on every panel holding a run on its
+    task. `references` are (path, load_reference(path)); one that matches no panel is an error."""
+    drawn = {panel: [] for panel in panel_envs}
+    for path, curves in references:
+        matched = False
+        for panel, envs in panel_envs.items():
+            for task in sorted({task_key(e) for e in envs} & set(curves)):
+                drawn[panel].append(curves[task])
+                matched = True
+        if not matched:
+            plotted = ", ".join(sorted({e for envs in panel_envs.values() for e in envs}))
+            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no plotted env "
+                            f"({plotted})")
+    return drawn
+
+
+def draw_reference(ax, ref: dict, i: int = 0):
+    """A published curve: the mean over its seeds and a band from its lowest to its highest seed. The
+    x range stays the runs' (once they span any frames): a published curve usually goes on far beyond them."""
+    xlim = ax.get_xlim()
+    ax.plot(ref["frames"], ref["mean"], color="k", ls=(":", "-.", "--")[i % 3], lw=1.5, marker="x", ms=4,
+            label=f"{ref['label']} (n={ref['seeds']}: mean, min-max)")
+    ax.fill_between(ref["frames"], ref["min"], ref["max"], color="k", alpha=0.08, lw=0)
+    if xlim[1] >= 1:
+        ax.set_xlim(xlim)
 
 
 # ---------------------------------------------------------------- activation maps: plot.py maps
@@ -489,9 +688,13 @@ def main(argv=None) -> int:
                         help="task sets: one panel per task, from eval.csv's <metric>/<task> columns")
     parser.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
                         help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
+    parser.add_argument("--reference", action="append", default=[], metavar="CSV[:LABEL]",
+                        help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and min-max "
+                             "band over its seeds, on the panels of its task; repeatable")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = parser.parse_args(argv)
     try:
+        references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
         baseline = None
         if args.baseline is not None:
             value, _, label = args.baseline.partition(":")
@@ -517,6 +720,8 @@ def main(argv=None) -> int:
                 print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
         if not runs:
             raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
+        if args.per_task:
+            runs += task_mean_runs(runs)
         envs = sorted({env_of(r) for r in runs})
         # One subplot per env, unless env is already told apart by the lines (or there is just one);
         # with --per-task one per task (and env).
@@ -528,19 +733,23 @@ def main(argv=None) -> int:
         panels = {}
         for panel, members in keyed.items():
             panels[panel] = {}
-            for label, group in group_runs(members, keys).items():
+            for label, group in (line for g in group_runs(members, keys).items()
+                                 for line in split_by_config(*g, keys).items()):
                 seeds = [r["config"].get("seed") for r in group]
                 if len(set(seeds)) < len(seeds):
                     print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
+                warn_uneven_ends(f"{label} ({panel})", group)
                 curves = [(r["frames"], r["values"]) for r in group]
                 envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
                 if "task" in group[0]:  # --per-task: the table names the task too
                     envs_of_group += f": {group[0]['task']}"
-                panels[panel][label] = (*aggregate(curves, interpolate=args.csv == "train"),
-                                        len(group), envs_of_group)
+                interpolate = args.csv == "train"
+                panels[panel][label] = (*aggregate(curves, interpolate), coverage(curves, interpolate),
+                                        envs_of_group)
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        plot(panels, args.out, ylabel, title, baseline)
+        drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references)
+        plot(panels, args.out, ylabel, title, baseline, drawn)
     except PlotError as e:
         print(f"plot.py: error: {e}", file=sys.stderr)
         return 2

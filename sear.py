@@ -61,7 +61,8 @@ class Config:
     frame_stack: int = arg(3, "frames stacked into one observation")
     max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
-    mask_approx: bool = arg(False, "use coarse approximate masks (downsample, upsample, blur, threshold)")
+    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian blur (sigma 0.5), "
+                                   "threshold 0.9 (envs.approximate_mask)")
     mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')",
                                ("majority", "stride"))
     mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
@@ -81,8 +82,9 @@ class Config:
                               ("fixed", "random"))
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
-    seed_frames: int = arg(4000, "frames of uniformly random actions before learning starts")
-    exploration_steps: int = arg(2000, "agent steps during which the actor also acts uniformly at random")
+    seed_frames: int = arg(4000, "frames collected before the first update (DrQ-v2's num_seed_frames)")
+    exploration_steps: int = arg(2000, "first agent steps of uniformly random actions (DrQ-v2's num_expl_steps); "
+                                       "then the actor plus noise acts, updated or not yet")
     nstep: int = arg(3, "n of the n-step return")
     batch_size: int = arg(256, "mini-batch size")
     discount: float = arg(0.99, "discount factor gamma")
@@ -94,7 +96,8 @@ class Config:
     hidden_dim: int = arg(1024, "actor and critic MLP width")
     std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
     std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
-    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action repeat)")
+    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action "
+                                  "repeat); plain dm_control tasks: DrQ-v2's 100k / 500k / 2M by task, task sets 2M")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
     eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
     eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
@@ -809,10 +812,9 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
                 env = rundir.start_eval(eval_env)  # scored by the decoders, filmed with --save-video
                 rundir.log_eval(evaluate(agent, env, cfg, c.step, on_step=rundir.show_eval))
 
-            if frame < cfg.seed_frames:
-                action = np.random.uniform(-1.0, 1.0, size=action_dim).astype(np.float32)
-            else:
-                action = agent.act(obs["pixels"], obs["mask"], c.step, eval_mode=False)
+            # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
+            # (Agent.act), then the actor plus noise, not yet updated while the seed frames are collected.
+            action = agent.act(obs["pixels"], obs["mask"], c.step, eval_mode=False)
             # Learning starts once the buffer holds the seed frames' worth of steps: after the random
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and c.step % cfg.update_every == 0 and buffer.can_sample()

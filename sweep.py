@@ -8,7 +8,7 @@ Usage:
   python sweep.py --grid kitchen                        # a named grid of the paper (see --help)
   python sweep.py --envs walker-walk cup-catch --methods sear drq --seeds 1-5 -- --frames 100000
   python sweep.py --grid kitchen --status               # queued / running / done / failed
-  python sweep.py --grid kitchen --report               # mean +- 95% CI over seeds, per task and overall
+  python sweep.py --grid kitchen --report               # per task mean +- 95% CI; over tasks IQM (rliable)
   python sweep.py --grid kitchen --partition gpu        # on SLURM (detected through `srun`)
 
 Flags that sweep.py does not know go to sear.py (after `--` or anywhere on the line); sear.py's
@@ -41,13 +41,16 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import socket
 import subprocess
 import sys
 import time
 import types
+import warnings
 from dataclasses import dataclass
 
+import numpy as np
 import submitit
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -439,9 +442,10 @@ class SearJob(submitit.helpers.Checkpointable):
     resumes the run from its last snapshot."""
 
     def __init__(self, job_dir: str, args: list[str], resume_args: list[str], threads: int,
-                 script: str, python: str = sys.executable):
+                 script: str, python: str = sys.executable, devices: str | None = None):
         self.job_dir, self.args, self.resume_args = job_dir, list(args), list(resume_args)
         self.threads, self.script, self.python = threads, script, python
+        self.devices = devices  # CUDA_VISIBLE_DEVICES for sear.py; None: as given (SLURM sets it)
 
     def __call__(self) -> str:
         me = whoami()
@@ -473,7 +477,7 @@ class SearJob(submitit.helpers.Checkpointable):
         attempt = (read_json(os.path.join(self.job_dir, "status.json")) or {}).get("attempts", 0) + 1
         set_status(self.job_dir, "running", attempts=attempt, owner=me)
         env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "MKL_NUM_THREADS": str(self.threads),
-               "PYTHONUNBUFFERED": "1"}
+               "PYTHONUNBUFFERED": "1", **({} if self.devices is None else {"CUDA_VISIBLE_DEVICES": self.devices})}
         with open(os.path.join(self.job_dir, "stdout.log"), "a") as out, \
                 open(os.path.join(self.job_dir, "stderr.log"), "a") as err:
             stamp = time.strftime("%Y-%m-%d %H:%M:%S")
@@ -490,6 +494,10 @@ class SearJob(submitit.helpers.Checkpointable):
             set_status(self.job_dir, "done", attempts=attempt, exit_code=0)
             return "done"
         how = f"exit code {code}" if code > 0 else f"killed by signal {-code}"
+        if code in (-signal.SIGTERM, 128 + signal.SIGTERM):  # scancel, a time limit, a shutdown
+            error = f"stopped by SIGTERM ({how}); re-run the sweep to resume"
+            set_status(self.job_dir, "interrupted", attempts=attempt, exit_code=code, error=error)
+            return f"interrupted: {error}"
         error = last_line(os.path.join(self.job_dir, "stderr.log"), offset) or how
         set_status(self.job_dir, "failed", attempts=attempt, exit_code=code, error=f"{how}: {error}")
         return f"failed: {how}: {error}"
@@ -533,17 +541,116 @@ def pick_engine(args) -> str:
     return engine
 
 
-def make_executor(args, engine: str, folder: str):
+def gres_gpus(gres: str) -> int:
+    """GPUs in one of sinfo's %G fields: 'gpu:4', 'gpu:a100:8(S:0-1)', 'gpu:a:2,gpu:b:2,mps:100', '(null)'."""
+    return sum(int(n) for n in re.findall(r"(?:^|,)gpu(?::[^:,(]+)?:(\d+)", gres))
+
+
+@dataclass(frozen=True)
+class Partition:
+    """What a node of a SLURM partition can give, as sinfo reports it."""
+    name: str    # for messages: "partition gpu" or "the default partition"
+    gpus: int    # the most GPUs one node has
+    cpus: int    # the most CPUs one node has
+
+
+def slurm_partition(partition: str | None) -> Partition | None:
+    """`partition` (None: the cluster's default one) from sinfo; None when sinfo cannot tell."""
+    if shutil.which("sinfo") is None:
+        return None
+    try:
+        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    rows = [line.split("|") for line in r.stdout.splitlines() if line.count("|") == 2] if r.returncode == 0 else []
+    if not rows:
+        return None
+    names = list(dict.fromkeys(name.rstrip("*") for name, _, _ in rows))
+    if partition is not None and partition not in names:
+        raise SweepError(f"SLURM has no partition '{partition}' (sinfo lists {', '.join(names)})")
+    mine = [(gres, cpus) for name, gres, cpus in rows
+            if (name.rstrip("*") == partition if partition else name.endswith("*"))]
+    if not mine:
+        return None
+    return Partition(f"partition {partition}" if partition else "the default partition",
+                     gpus=max(gres_gpus(g) for g, _ in mine),
+                     cpus=max(int(re.match(r"\d*", c)[0] or 0) for _, c in mine))
+
+
+def local_gpus() -> list[str]:
+    """The GPUs this machine lets us use, as CUDA_VISIBLE_DEVICES names them."""
+    import torch
+    n = torch.cuda.device_count()
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    names = [d.strip() for d in visible.split(",") if d.strip()] if visible is not None else []
+    return names[:n] if visible is not None else [str(i) for i in range(n)]
+
+
+def job_gpus(args, engine: str, part: Partition | None) -> tuple[int, str]:
+    """(GPUs per job, what the header says about them). The default is what this machine or the
+    partition can give: 1 where there are GPUs, else none; an explicit count it cannot give fails here,
+    before anything is created."""
+    asked = args.gpus_per_job
+    if engine == "local":
+        have = len(local_gpus())
+        if asked is not None and asked > have:
+            raise SweepError(f"--gpus-per-job {asked}: this machine has {have} GPU(s)"
+                             + ("; --gpus-per-job 0 runs on the CPU" if have == 0 else ""))
+        gpus = min(1, have) if asked is None else asked
+        return gpus, f"{gpus} of {have} GPU(s) per job" if have else "no GPU"
+    if part is None:  # sinfo cannot tell: the paper's runs need a GPU; sbatch has the last word
+        gpus = 1 if asked is None else asked
+        return gpus, f"{gpus} GPU(s) per job"
+    if asked is not None and asked > part.gpus:
+        have = f"at most {part.gpus} GPU(s)" if part.gpus else "no GPUs; --gpus-per-job 0 runs on their CPUs"
+        raise SweepError(f"--gpus-per-job {asked}: the nodes of {part.name} have {have} (sinfo)")
+    gpus = min(1, part.gpus) if asked is None else asked
+    return gpus, f"{gpus} GPU(s) per job" if part.gpus else f"no GPU, as {part.name} has none"
+
+
+def check_cpus(args, part: Partition | None) -> None:
+    """A job that asks for more CPUs than any node has would stay pending for ever."""
+    if part is not None and part.cpus and args.threads > part.cpus:
+        raise SweepError(f"--threads {args.threads}: the nodes of {part.name} have at most {part.cpus} CPUs "
+                         f"(sinfo), so the jobs would never start")
+
+
+def make_executor(args, engine: str, folder: str, gpus: int):
     executor = submitit.AutoExecutor(folder=folder, cluster=engine)
-    gpus = args.gpus_per_job
-    if gpus is None:  # SLURM: the paper's runs need a GPU; locally: every GPU this machine has
-        import torch  # (0 GPUs locally would hide them: submitit sets CUDA_VISIBLE_DEVICES)
-        gpus = 1 if engine == "slurm" else torch.cuda.device_count()
+    # Locally each job gets its GPUs through CUDA_VISIBLE_DEVICES (SearJob.devices), not submitit's
+    # (which would give every job the same first ones); on SLURM, no GPU request unless there are GPUs.
     params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", cpus_per_task=args.threads,
-                  gpus_per_node=gpus, mem_gb=args.mem_gb, slurm_partition=args.partition,
-                  slurm_account=args.account, slurm_array_parallelism=args.slurm_array_parallelism)
+                  gpus_per_node=(gpus or None) if engine != "local" else 0, mem_gb=args.mem_gb,
+                  slurm_partition=args.partition, slurm_account=args.account,
+                  slurm_array_parallelism=args.slurm_array_parallelism)
     executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
     return executor
+
+
+def submit_array(executor, jobs: list, args) -> list:
+    """One SLURM array; SweepError with sbatch's own reason (one line) if it refuses."""
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):  # submitit prints sbatch's stderr before raising it
+            with executor.batch():
+                submitted = [executor.submit(job) for job in jobs]
+    except (submitit.core.utils.FailedJobError, submitit.core.utils.FailedSubmissionError, OSError) as e:
+        lines = [ln.strip() for ln in (str(e) or err.getvalue()).splitlines() if ln.strip()]
+        reason = "; ".join(ln.removeprefix("sbatch: error: ") for ln in lines) or type(e).__name__
+        hint = ""
+        if re.search(r"gres|gpu", reason, re.I):
+            hint = " (--gpus-per-job 0 submits without a GPU request)"
+        elif re.search(r"memory|node configuration", reason, re.I):
+            hint = f" (does a node have --mem-gb {args.mem_gb} GB?)"
+        raise SweepError(f"sbatch refused the {len(jobs)} job(s): {reason[:300]}{hint}") from None
+    return submitted
+
+
+def job_devices(gpus: int, have: list[str], slots: int) -> list[str]:
+    """CUDA_VISIBLE_DEVICES of each local job slot: `gpus` per job, round robin over `have`."""
+    if not gpus:
+        return [""] * slots  # --gpus-per-job 0 (or no GPU): every job on the CPU
+    return [",".join(have[(s * gpus + i) % len(have)] for i in range(gpus)) for s in range(slots)]
 
 
 def outcome(job) -> str:
@@ -553,24 +660,26 @@ def outcome(job) -> str:
         return "failed: " + (str(e).strip().splitlines() or [type(e).__name__])[-1][:300]
 
 
-def run_local(executor, jobs: dict, parallel: int) -> dict:
-    """Start the jobs `parallel` at a time; {spec: outcome}."""
+def run_local(executor, jobs: dict, parallel: int, devices: list[str]) -> dict:
+    """Start the jobs `parallel` at a time, the one in slot k on devices[k]; {spec: outcome}."""
     pending, running, results = list(jobs), {}, {}
-    started = {}
+    started, free = {}, list(range(parallel))
     try:
         while pending or running:
-            while pending and len(running) < parallel:
-                spec = pending.pop(0)
-                running[spec], started[spec] = executor.submit(jobs[spec]), time.time()
+            while pending and free:
+                spec, slot = pending.pop(0), free.pop(0)
+                jobs[spec].devices = devices[slot]
+                running[spec], started[spec] = (executor.submit(jobs[spec]), slot), time.time()
             time.sleep(0.2)
-            for spec, job in list(running.items()):
+            for spec, (job, slot) in list(running.items()):
                 if job.done():
                     del running[spec]
+                    free = sorted([*free, slot])
                     results[spec] = outcome(job)
                     print(f"[{len(results)}/{len(jobs)}] {spec.name}: {results[spec]} "
                           f"({time.time() - started[spec]:.0f} s)", flush=True)
     except KeyboardInterrupt:
-        for job in running.values():
+        for job, _ in running.values():
             job.cancel(check=False)
         raise
     return results
@@ -627,12 +736,66 @@ def status_table(out: str, specs: list[JobSpec]) -> str:
 
 
 # ================================================================================================
-# 7. Report: plot.py's loading, averaging and drawing
+# 7. Report: per task plot.py's mean +- 95% CI over seeds; over the tasks rliable's IQM and mean
 # ================================================================================================
+# Stratified-bootstrap resamples of the across-task CIs. For one method of a grid (5 seeds x 10 tasks x
+# 250 evaluations) on 2 busy cores, rliable's default of 50,000 took 41 s, 10,000 took 10 s.
+BOOTSTRAP_REPS = 10_000
+DM_CONTROL_STEPS = 1000  # control steps of a dm_control episode, each rewarded in [0, 1]
+
+
+def dm_control_max(config: dict) -> float:
+    """The highest return of a dm_control episode: 1 per control step (--max-episode-steps cuts them)."""
+    steps = config.get("max_episode_steps") or 0
+    return float(min(DM_CONTROL_STEPS, steps * config.get("action_repeat", 1)) if steps else DM_CONTROL_STEPS)
+
+
+def normalisation(env: str, runs: list[dict], metric: str) -> tuple[list[tuple[float, float]], str]:
+    """(low, high) of each run's scores, so that (score - low) / (high - low) compares across tasks, and
+    what the report says: success rates as they are, dm_control returns by the task's maximum, any
+    other return min-max over this sweep's evaluations of the task."""
+    import envs
+    if metric == "success":
+        return [(0.0, 1.0)] * len(runs), "success rate, as it is"
+    if envs._parse_name(env)[0] in ("dmc", "distracting"):
+        highs = [dm_control_max(r["config"]) for r in runs]
+        return [(0.0, h) for h in highs], (f"return / {' or '.join(f'{h:g}' for h in sorted(set(highs)))} "
+                                           f"(dm_control's maximum: 1 per control step)")
+    values = np.concatenate([r["values"] for r in runs])
+    lo, hi = float(values.min()), float(values.max())
+    if hi == lo:
+        return [(lo, lo + 1.0)] * len(runs), f"min-max over this sweep, but every return is {lo:.4g}: all 0"
+    return [(lo, hi)] * len(runs), f"min-max over this sweep: (return - {lo:.4g}) / ({hi:.4g} - {lo:.4g})"
+
+
+def across_tasks(scores: dict[str, np.ndarray]) -> dict[str, dict]:
+    """rliable's IQM and mean with stratified-bootstrap 95% CIs (runs resampled within each task), at
+    every frame: scores[method] is (seeds, tasks, frames) of normalised scores. -> {method: {"iqm",
+    "iqm_ci", "mean", "mean_ci"}}, the CIs (2, frames) bounds."""
+    from rliable import library as rly
+
+    def iqm_and_mean(x):
+        # rliable's metrics.aggregate_iqm (scipy's trim_mean, 25% off each end) and aggregate_mean at
+        # every frame at once: trim_mean's own checks cost 2 ms a call, times 10,000 resamples.
+        flat = np.sort(x.reshape(-1, x.shape[-1]), axis=0)
+        cut = int(0.25 * len(flat))
+        return np.concatenate([flat[cut:len(flat) - cut].mean(axis=0), flat.mean(axis=0)])
+    with warnings.catch_warnings():  # arch's note on how rliable seeds it, not about these numbers
+        warnings.simplefilter("ignore", FutureWarning)
+        point, ci = rly.get_interval_estimates(scores, iqm_and_mean, reps=BOOTSTRAP_REPS,
+                                               random_state=np.random.RandomState(0))
+    out = {}
+    for m, x in scores.items():
+        f = x.shape[-1]
+        out[m] = {"iqm": point[m][:f], "iqm_ci": ci[m][:, :f], "mean": point[m][f:], "mean_ci": ci[m][:, f:]}
+    return out
+
+
 def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> str | None:
-    """Per task: mean +- 95% CI over seeds for each method. Over the tasks (the grid's aggregate):
-    each seed's mean over all tasks, then mean +- 95% CI of those over seeds. Only finished runs
-    count. Writes <out>/<sweep>/report.png and report.md; returns the table."""
+    """Per task: mean +- 95% CI over seeds for each method (raw scores). Over the tasks: IQM and mean
+    of the scores normalised per task (normalisation()), with rliable's stratified-bootstrap 95% CIs
+    over the seeds finished on every task. Only finished runs count. Writes <out>/<sweep>/report.png
+    and report.md; returns the tables."""
     import plot
     finished = []
     for spec in specs:
@@ -644,53 +807,73 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
         return None
     if metric is None:  # a success rate where every run has one, else the return
         metric = "success" if all(has_column(run, "success") for _, run in finished) else "return"
-    curves = {}
+    runs = {}
     for spec, run in finished:
         try:
-            r = plot.load_run(run, "eval", metric)
+            runs.setdefault((spec.env, spec.variant), {})[spec.seed] = plot.load_run(run, "eval", metric)
         except plot.PlotError as e:
             print(f"report: skipping {spec.name}: {e}")
-            continue
-        curves.setdefault((spec.env, spec.variant), {})[spec.seed] = (r["frames"], r["values"])
-    envs = list(dict.fromkeys(s.env for s in specs))
+    envs = [e for e in dict.fromkeys(s.env for s in specs) if any(k[0] == e for k in runs)]
     variants = list(dict.fromkeys(s.variant for s in specs))
-
-    def line(runs: list, label: str):
-        try:
-            return (*plot.aggregate(runs), len(runs), label)
-        except plot.PlotError as e:
-            print(f"report: {label}: {e}")
-            return None
+    if not envs:
+        return None
 
     panels = {}
     for env in envs:
-        lines = {v: line(list(curves[(env, v)].values()), env) for v in variants if (env, v) in curves}
-        panels[env] = {v: ln for v, ln in lines.items() if ln}
-    if len(envs) > 1:
-        overall = f"mean over {len(envs)} tasks"
-        panels[overall] = {}
+        panels[env] = {}
         for v in variants:
-            seeds = [s for s in curves.get((envs[0], v), {}) if all(s in curves.get((e, v), {}) for e in envs)]
-            try:  # plot.aggregate over one seed's tasks: their mean at the frames every task reached
-                per_seed = [plot.aggregate([curves[(e, v)][s] for e in envs])[:2] for s in seeds]
-            except plot.PlotError as e:
-                print(f"report: {overall}, {v}: {e}")
-                continue
-            ln = line(per_seed, overall) if per_seed else None
-            if ln:
-                panels[overall][v] = ln
-    panels = {k: v for k, v in panels.items() if v}
-    if not panels:
-        return None
+            curves = [(r["frames"], r["values"]) for r in runs.get((env, v), {}).values()]
+            if curves:
+                panels[env][v] = (*plot.aggregate(curves), plot.coverage(curves), env)
+
+    # Normalised per task (every method's runs of the task together), then over the tasks.
+    how, normalised = {}, {}
+    for env in envs:
+        members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env for seed, r in by_seed.items()]
+        bounds, how[env] = normalisation(env, [r for _, _, r in members], metric)
+        for (k, seed, r), (lo, hi) in zip(members, bounds):
+            normalised.setdefault(k, {})[seed] = (r["frames"], (r["values"] - lo) / (hi - lo))
+    scores, seeds_of = {}, {}
+    for v in variants:
+        seeds = sorted(set.intersection(*(set(normalised.get((e, v), {})) for e in envs)))
+        if not seeds:
+            continue
+        frames = normalised[(envs[0], v)][seeds[0]][0]
+        for e in envs:
+            for s in seeds:
+                frames = np.intersect1d(frames, normalised[(e, v)][s][0])
+        if len(frames) == 0:
+            print(f"report: {v}: its runs share no evaluation frame; left out of the aggregate")
+            continue
+        scores[v] = np.array([[normalised[(e, v)][s][1][np.isin(normalised[(e, v)][s][0], frames)]
+                               for e in envs] for s in seeds])
+        seeds_of[v] = (seeds, frames)
+    overall = f"over {len(envs)} task{'s' * (len(envs) > 1)}: IQM of normalised scores, bootstrap 95% CI"
+    aggregate_rows = ["| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|"]
+    if scores:
+        panels[overall] = {}
+        for v, est in across_tasks(scores).items():
+            seeds, frames = seeds_of[v]
+            panels[overall][v] = (frames, est["iqm"], est["iqm_ci"], len(seeds), overall)
+            iqm, mean = (f"{est[k][-1]:.3f} [{est[k + '_ci'][0, -1]:.3f}, {est[k + '_ci'][1, -1]:.3f}]"
+                         for k in ("iqm", "mean"))
+            runs_of = f"{len(seeds)} seed{'s' * (len(seeds) > 1)} x {len(envs)} task{'s' * (len(envs) > 1)}"
+            aggregate_rows.append(f"| {v} | {runs_of} | {frames[-1]:.0f} | {iqm} | {mean} |")
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     png = os.path.join(out, sweep, "report.png")
-    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel}, mean ± 95% CI over seeds")
-    table = plot.summary_table(panels, metric)
-    note = f"{len(finished)} of {len(specs)} jobs finished; only finished runs are averaged."
+    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel}; per task mean ± 95% CI over seeds, over tasks IQM "
+                                   f"(stratified bootstrap 95% CI)")
+    per_task = plot.summary_table({e: panels[e] for e in envs}, metric)
+    norm_rows = ["| task | normalised score |", "|---|---|", *(f"| {e} | {how[e]} |" for e in envs)]
+    tables = "\n\n".join([per_task, "\n".join(aggregate_rows), "\n".join(norm_rows)])
+    note = (f"{len(finished)} of {len(specs)} jobs finished; only finished runs count. Per task: mean ± 95% "
+            f"t-interval over seeds, raw scores. Over the tasks: IQM and mean of the scores normalised per task "
+            f"(last table), with 95% stratified-bootstrap CIs over the seeds finished on every task (rliable, "
+            f"{BOOTSTRAP_REPS} resamples).")
     with open(os.path.join(out, sweep, "report.md"), "w") as f:
-        f.write(f"# {sweep}\n\n{note}\n\n![curves](report.png)\n\n{table}\n")
-    print(f"{table}\n\n{note}\nwrote {png} and report.md")
-    return table
+        f.write(f"# {sweep}\n\n{note}\n\n![curves](report.png)\n\n{tables}\n")
+    print(f"{tables}\n\n{note}\nwrote {png} and report.md")
+    return tables
 
 
 def has_column(run: str, name: str) -> bool:
@@ -731,7 +914,8 @@ def build_parser() -> argparse.ArgumentParser:
     eng.add_argument("--jobs", type=int, help="local: jobs at a time (default: cores // --threads)")
     eng.add_argument("--threads", type=int, default=1, help="torch threads per job (OMP_NUM_THREADS; default 1)")
     eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, the authors')")
-    eng.add_argument("--gpus-per-job", type=int, help="default: 1 on SLURM, every visible GPU locally")
+    eng.add_argument("--gpus-per-job", type=int, help="default: 1 where the partition (sinfo) or this machine "
+                     "has GPUs, else 0; locally each job gets its own, round robin (CUDA_VISIBLE_DEVICES)")
     eng.add_argument("--mem-gb", type=int, default=32, help="SLURM memory per job (default 32; replay is ~5.5 GB)")
     eng.add_argument("--partition", help="SLURM partition")
     eng.add_argument("--account", help="SLURM account")
@@ -782,9 +966,13 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
     busy = [s for s in specs if s not in done and alive(read_json(os.path.join(dirs[s], "lock"))) is not False]
     todo = [s for s in specs if s not in done and s not in busy]
     parallel = args.jobs or max(1, cpu_count() // args.threads)
+    part = slurm_partition(args.partition) if engine == "slurm" else None
+    check_cpus(args, part)
+    gpus, gpu_note = job_gpus(args, engine, part)
     shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
             f"{len({s.seed for s in specs})} seeds"
     where = f"{engine}, {parallel} at a time, {args.threads} thread(s) each" if engine == "local" else engine
+    where += f", {gpu_note}"
     print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running elsewhere, "
           f"{len(todo)} to run ({where})", flush=True)
     if args.dry_run:
@@ -802,14 +990,13 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
         os.makedirs(d, exist_ok=True)
         write_json(os.path.join(d, "job.json"), dataclasses.asdict(spec))
         jobs[spec] = SearJob(d, spec.args, spec.resume_args, args.threads, script=SEAR_PY)
-    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"))
+    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus)
     if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
         import cloudpickle                # they need no `import sweep` from whatever their cwd is
         cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
 
     if engine != "local":  # one SLURM array; this process only submits
-        with executor.batch():
-            submitted = [executor.submit(jobs[spec]) for spec in todo]
+        submitted = submit_array(executor, [jobs[spec] for spec in todo], args)
         for spec, job in zip(todo, submitted):
             mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
         print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with "
@@ -819,12 +1006,12 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
     for spec in todo:
         mark_queued(dirs[spec], driver)
     try:
-        results = run_local(executor, jobs, parallel)
+        results = run_local(executor, jobs, parallel, job_devices(gpus, local_gpus(), parallel))
     except KeyboardInterrupt:
         print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
               "interrupted ones resume from their last snapshot)", file=sys.stderr)
         return 130
-    failed = [s for s, r in results.items() if r.startswith("failed")]
+    failed = [s for s, r in results.items() if r.startswith(("failed", "interrupted"))]
     print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
           + (f"; {len(failed)} failed (see --status)" if failed else ""))
     report(args.out, args.sweep, specs, grid.metric if grid else None)

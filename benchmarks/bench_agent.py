@@ -31,14 +31,27 @@ import experiment  # noqa: E402
 import sear  # noqa: E402
 
 
-def gemm_gflops(dtype, n=2048, reps=6):
-    """Square matmul throughput: the peak the convolutions are measured against."""
-    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
+def gemm_size(device):
+    """(n, reps) of the peak's square matmul: a GPU needs far larger products than 2048^3 to reach it."""
+    return (8192, 20) if torch.device(device).type == "cuda" else (2048, 6)
+
+
+def gemm_gflops(dtype, device="cpu"):
+    """Square matmul throughput on `device`: the peak the convolutions are measured against."""
+    n, reps = gemm_size(device)
+    a, b = (torch.randn(n, n, dtype=dtype, device=device) for _ in range(2))
     a @ b
+    sync(device)
     start = time.perf_counter()
     for _ in range(reps):
         a @ b
+    sync(device)
     return 2 * n ** 3 * reps / (time.perf_counter() - start) / 1e9
+
+
+def sync(device):
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def fake_batch(batch_size, action_dim=6, seed=0):
@@ -60,8 +73,7 @@ def time_updates(agent, batch, updates):
     start = time.perf_counter()
     for _ in range(updates):
         agent.update(batch, step=5_000)
-    if agent.device.type == "cuda":
-        torch.cuda.synchronize()
+    sync(agent.device)
     return (time.perf_counter() - start) / updates
 
 
@@ -166,7 +178,7 @@ def step_split(args):
     obs, _ = train_env.reset(seed=0)
     buffer.add_first(obs)
     times = {"env": [], "act": [], "sample": [], "update": []}
-    for step in range(args.split_steps + 300):
+    for step in range(args.split_warmup + args.split_steps):
         t0 = time.perf_counter()
         action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
         t1 = time.perf_counter()
@@ -176,7 +188,7 @@ def step_split(args):
             obs, _ = train_env.reset(seed=step)
             buffer.add_first(obs)
         t2 = time.perf_counter()
-        if step >= 300:  # the first 300 steps only fill the buffer
+        if step >= args.split_warmup:  # the first steps only fill the buffer
             times["act"].append(t1 - t0)
             times["env"].append(t2 - t1)
             if step % cfg.update_every == 0:
@@ -298,6 +310,7 @@ def main():
     p.add_argument("--env", default="walker-walk", help="env of the training-step split")
     p.add_argument("--split-method", default="sear", choices=list(sear.METHODS))
     p.add_argument("--split-steps", type=int, default=40, help="timed training steps of the split (0: skip)")
+    p.add_argument("--split-warmup", type=int, default=300, help="untimed steps that fill the split's buffer first")
     p.add_argument("--official", metavar="DIR", help="a checkout of facebookresearch/drqv2 to time against")
     p.add_argument("--rounds", type=int, default=5, help="alternating rounds of the official comparison")
     p.add_argument("--breakdown", action="store_true",
@@ -318,8 +331,12 @@ def main():
         print(time_updates(agent, fake_batch(args.batch_size), args.updates))
         return
 
-    peaks = {"fp32": gemm_gflops(torch.float32), "bf16": gemm_gflops(torch.bfloat16)}
-    print(f"## Machine\n\n{os.cpu_count()} cores, {torch.get_num_threads()} torch threads; GEMM 2048^3: "
+    peaks = {"fp32": gemm_gflops(torch.float32, args.device), "bf16": gemm_gflops(torch.bfloat16, args.device)}
+    n = gemm_size(args.device)[0]
+    on = (f"{torch.cuda.get_device_name(args.device)} (fp32 matmul TF32: {torch.backends.cuda.matmul.allow_tf32}, "
+          f"cuDNN conv TF32: {torch.backends.cudnn.allow_tf32})" if torch.device(args.device).type == "cuda"
+          else f"{os.cpu_count()} cores, {torch.get_num_threads()} torch threads")
+    print(f"## Machine\n\n{on}; GEMM {n}^3 on {args.device}: "
           f"fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s\n")
     print("## Replay buffer footprint\n\n| action dim | bytes / transition | 1M transitions |\n|---|---|---|")
     for a in (6, 4, 9, 28):

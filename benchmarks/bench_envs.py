@@ -37,17 +37,26 @@ def steps_per_second(env, steps: int, rng: np.random.Generator) -> float:
     return steps / (time.perf_counter() - start)
 
 
+def gl_renderer(env) -> str:
+    """The OpenGL renderer that draws the env's frames: with MUJOCO_GL=egl, Mesa's llvmpipe on a CPU
+    machine, the GPU where its driver provides EGL (PyOpenGL comes with mujoco)."""
+    from OpenGL import GL
+    env._rgb_renderer._gl_context.make_current()
+    return " / ".join(GL.glGetString(k).decode() for k in (GL.GL_VENDOR, GL.GL_RENDERER))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=24, help="timed agent steps per cell")
     parser.add_argument("--envs", nargs="+", default=DEFAULT_ENVS)
     args = parser.parse_args()
 
-    rows = []
+    rows, renderer = [], None
     for name in args.envs:
         cells = {}
         for quality in ("paper", "fast"):
             env = envs.make_env(name, seed=0, render_quality=quality)
+            renderer = renderer or gl_renderer(env)
             rng = np.random.default_rng(0)
             for render_mask in (False, True):
                 env.render_mask = render_mask
@@ -57,7 +66,7 @@ def main() -> None:
         print(f"# done {name}", file=sys.stderr, flush=True)
 
     print(f"Agent steps/s ({args.steps} steps per cell, 84x84, {os.cpu_count()} CPU cores, "
-          f"MUJOCO_GL={os.environ['MUJOCO_GL']})\n")
+          f"MUJOCO_GL={os.environ['MUJOCO_GL']}, OpenGL: {renderer})\n")
     print("| env | action repeat | paper RGB | paper RGB+mask | fast RGB | fast RGB+mask |")
     print("|---|---|---|---|---|---|")
     for name, repeat, c in rows:

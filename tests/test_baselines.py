@@ -8,9 +8,6 @@ import torch
 import sear
 from tests.test_cli import TINY, only_run_dir, run
 
-CPU = torch.device("cpu")
-
-
 def tiny_cfg(method, **kw):
     return sear.Config(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=8,
                        action_repeat=2, **kw)
@@ -31,8 +28,8 @@ def numpy_batch(n=8, action_dim=2, seed=0):
 
 
 @pytest.mark.parametrize("method", list(sear.METHODS))
-def test_every_method_builds_acts_and_updates(method):
-    agent = sear.Agent(tiny_cfg(method), action_dim=2, device=CPU)
+def test_every_method_builds_acts_and_updates(method, device):
+    agent = sear.Agent(tiny_cfg(method), action_dim=2, device=device)
     batch = numpy_batch()
     a = agent.act(batch[0][0], batch[1][0], step=10**6, eval_mode=True)
     assert a.shape == (2,) and np.all(np.abs(a) <= 1)
@@ -43,9 +40,9 @@ def test_every_method_builds_acts_and_updates(method):
 
 @pytest.mark.parametrize("method, terms", [("sear", ["recon_loss", "mask_loss"]), ("sear-nosplit", ["recon_loss", "mask_loss"]),
                                            ("ae", ["recon_loss"]), ("mae", ["recon_loss"]), ("curl", ["curl_loss"])])
-def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms):
+def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
     torch.manual_seed(0)
-    agent = sear.Agent(tiny_cfg(method, lr=1e-3), action_dim=2, device=CPU)
+    agent = sear.Agent(tiny_cfg(method, lr=1e-3), action_dim=2, device=device)
     batch = numpy_batch(n=4, seed=1)
     history = {t: [] for t in terms}
     for _ in range(40):
@@ -57,16 +54,16 @@ def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms):
         assert last < 0.8 * first, f"{method} {t}: {first:.3f} -> {last:.3f}"
 
 
-def test_curl_logits_are_b_by_b_and_identity_w_picks_the_diagonal():
+def test_curl_logits_are_b_by_b_and_identity_w_picks_the_diagonal(device):
     cfg = tiny_cfg("curl")
-    agent = sear.Agent(cfg, action_dim=2, device=CPU)
+    agent = sear.Agent(cfg, action_dim=2, device=device)
     aux = agent.aux
-    q = torch.nn.functional.normalize(torch.randn(16, cfg.curl_dim), dim=1)
+    q = torch.nn.functional.normalize(torch.randn(16, cfg.curl_dim, device=device), dim=1)
     with torch.no_grad():
         aux.W.copy_(torch.eye(cfg.curl_dim))
     logits = aux.logits(q, q)
     assert logits.shape == (16, 16)
-    assert torch.equal(logits.argmax(dim=1), torch.arange(16))
+    assert torch.equal(logits.argmax(dim=1).cpu(), torch.arange(16))
     # the key encoder follows the online encoder by EMA (tau), not by gradients
     assert not any(p.requires_grad for p in aux.key_encoder.parameters())
     key_before = [p.clone() for p in aux.key_encoder.parameters()]
@@ -78,9 +75,9 @@ def test_curl_logits_are_b_by_b_and_identity_w_picks_the_diagonal():
         torch.testing.assert_close(k, kb + cfg.curl_tau * (p - kb))
 
 
-def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels():
+def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels(device):
     torch.manual_seed(0)
-    hidden = sear.patch_mask(6, 84, 12, 0.75, CPU)
+    hidden = sear.patch_mask(6, 84, 12, 0.75, device).cpu()
     assert hidden.shape == (6, 1, 84, 84)
     assert torch.allclose(hidden.mean(dim=(1, 2, 3)), torch.full((6,), 37 / 49))  # round(0.75 * 49) patches
     # every patch is wholly hidden or wholly visible
@@ -101,30 +98,30 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels():
     assert m["recon_loss"] == pytest.approx(0.25 * 9 * 37 * 144)  # hidden pixels only, 9 channels
 
 
-def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame():
-    agent = sear.Agent(tiny_cfg("rgbm"), action_dim=2, device=CPU)
+def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame(device):
+    agent = sear.Agent(tiny_cfg("rgbm"), action_dim=2, device=device)
     assert agent.encoder.convs[0].in_channels == 12
-    pixels = torch.rand(2, 9, 84, 84) * 255
-    mask = (torch.rand(2, 3, 84, 84) > 0.5).float()
+    pixels = torch.rand(2, 9, 84, 84, device=device) * 255
+    mask = (torch.rand(2, 3, 84, 84, device=device) > 0.5).float()
     x = agent.encoder_input(pixels, mask)
     assert x.shape == (2, 12, 84, 84)
     for f in range(3):
         assert torch.equal(x[:, 4 * f:4 * f + 3], pixels[:, 3 * f:3 * f + 3])
         assert torch.equal(x[:, 4 * f + 3], mask[:, f] * 255)
     with pytest.raises(ValueError, match="needs the robot mask"):
-        agent.act(pixels[0].numpy(), None, step=0, eval_mode=True)
+        agent.act(pixels[0].cpu().numpy(), None, step=0, eval_mode=True)
 
 
 @pytest.mark.parametrize("method, split", [("sear", True), ("sear-nosplit", False)])
-def test_decoder_inputs_split_or_not(method, split):
+def test_decoder_inputs_split_or_not(method, split, device):
     cfg = tiny_cfg(method)
-    agent = sear.Agent(cfg, action_dim=2, device=CPU)
+    agent = sear.Agent(cfg, action_dim=2, device=device)
     seen = {}
     agent.aux.recon_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("recon", i[0]))
     agent.aux.mask_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("mask", i[0]))
-    latent = torch.randn(4, cfg.latent_dim)
-    obs = torch.rand(4, 9, 84, 84) * 255
-    agent.aux(agent.encoder, latent, obs, obs, torch.zeros(4, 3, 84, 84))
+    latent = torch.randn(4, cfg.latent_dim, device=device)
+    obs = torch.rand(4, 9, 84, 84, device=device) * 255
+    agent.aux(agent.encoder, latent, obs, obs, torch.zeros(4, 3, 84, 84, device=device))
     half = cfg.latent_dim // 2
     if split:  # the authors' order: first half -> reconstruction (z), second half -> mask (z_R)
         assert torch.equal(seen["recon"], latent[:, :half]) and torch.equal(seen["mask"], latent[:, half:])

@@ -285,24 +285,40 @@ def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
 
 @pytest.mark.parametrize("action_repeat", [1, 2])
 def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action_repeat):
-    """The std schedule, exploration phase and updates see the agent step (frame / action repeat)."""
+    """As DrQ-v2 (train.py train, drqv2.py act): the agent acts from step 0, uniformly for the first
+    --exploration-steps AGENT steps, then with the actor plus noise; updates start once the seed
+    FRAMES are in. At action repeat 2 the 12 seed frames are the 6 uniform steps; at 1 the actor, not
+    yet updated, acts for the seed frames' second half."""
+    import numpy as np
+    import torch
+
     import cli
     import sear
-    seen = {"act": [], "update": []}
-    act, update = sear.Agent.act, sear.Agent.update
+    seen = {"act": [], "update": [], "actions": []}
+    act, update, add, sample = sear.Agent.act, sear.Agent.update, sear.ReplayBuffer.add, sear.TruncatedNormal.sample
     monkeypatch.setattr(sear.Agent, "act", lambda self, p, m, step, eval_mode: (
         None if eval_mode else seen["act"].append(step), act(self, p, m, step, eval_mode))[1])
     monkeypatch.setattr(sear.Agent, "update", lambda self, batch, step: (
         seen["update"].append(step), update(self, batch, step))[1])
+    monkeypatch.setattr(sear.ReplayBuffer, "add", lambda self, action, *rest: (
+        seen["actions"].append(np.array(action)), add(self, action, *rest))[1])
+    # Acting (clip None), the actor's sample is a constant: an action equal to it came from the actor.
+    monkeypatch.setattr(sear.TruncatedNormal, "sample", lambda self, clip=None: (
+        torch.full_like(self.loc, 0.125) if clip is None else sample(self, clip)))
     cfg, run, _ = cli.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat",
-                                  str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY],
+                                  str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY,
+                                  "--seed-frames", "12", "--exploration-steps", "6"],
                                  sear.Config, sear.METHODS)
     sear.train(cfg, run)
-    first = cfg.seed_frames // action_repeat  # the first step after the random seed phase
     last = cfg.frames // action_repeat - 1
-    assert seen["act"] == list(range(first, last + 1))
-    assert seen["update"] and seen["update"][0] >= first and seen["update"][-1] <= last
+    assert seen["act"] == list(range(last + 1))
+    source = ["actor" if np.all(a == 0.125) else "uniform" for a in seen["actions"]]
+    assert source == ["uniform"] * 6 + ["actor"] * (last + 1 - 6)
+    first = cfg.seed_frames // action_repeat  # the first step after the seed frames: 12 (repeat 1), 6 (repeat 2)
+    assert seen["update"] and seen["update"][0] == first and seen["update"][-1] <= last
     assert all(s % cfg.update_every == 0 for s in seen["update"])
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert json.loads((run_dir / "config.json").read_text())["std_steps"] == 100_000   # DrQ-v2: easy task
 
 
 def test_prefetch_on_cpu_trains(tmp_path):

@@ -79,10 +79,10 @@ def test_save_video_writes_the_first_episode_of_each_evaluation(tiny_runs):
     ("mae", {"recon_psnr"}, 2),  # camera | reconstruction
     ("sear", {"mask_iou", "mask_bce", "recon_psnr"}, 4),
 ])
-def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores, panels):
+def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores, panels, device):
     import imageio.v2 as imageio
     cfg = sear.Config(method=method, frame_stack=3, latent_dim=64, hidden_dim=32)
-    agent = sear.Agent(cfg, 2, torch.device("cpu"))
+    agent = sear.Agent(cfg, 2, device)
 
     class Env:  # the two calls evaluate() makes; a moving square to film, on the robot's mask
         t = 0

@@ -166,16 +166,16 @@ def test_evaluation_runs_every_task():
 
 # ---------------------------------------------------------------- transfer
 @pytest.mark.parametrize("parts", ["encoder", "encoder+decoders", "all"])
-def test_copy_parts_copies_exactly_the_named_parts(parts):
+def test_copy_parts_copies_exactly_the_named_parts(parts, device):
     cfg = sear.Config(latent_dim=64, hidden_dim=32, feature_dim=8)
     torch.manual_seed(0)
-    source = sear.Agent(cfg, 4, torch.device("cpu"))
+    source = sear.Agent(cfg, 4, device)
     with torch.no_grad():  # stands for training: every weight moves
         for net in (source.encoder, source.aux, source.actor, source.critic, source.critic_target):
             for p in net.parameters():
                 p.add_(1.0)
     torch.manual_seed(1)
-    agent = sear.Agent(cfg, 4, torch.device("cpu"))
+    agent = sear.Agent(cfg, 4, device)
     fresh = {k: {n: v.clone() for n, v in sd.items()} for k, sd in agent.state_dict().items()
              if k in ("encoder", "aux", "actor", "critic", "critic_target")}
     experiment.copy_parts(agent, source.state_dict(), parts)
@@ -223,15 +223,18 @@ def test_plot_per_task_draws_one_panel_per_task(mt3_run, tmp_path, capsys):
     run_dir, _ = mt3_run
     assert plot.main([str(run_dir), "--per-task", "--metric", "success", "--out", str(tmp_path / "t.png")]) == 0
     table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| metaworld-mt3")]
-    assert [line.split(" | ")[0] for line in table] == [f"| metaworld-mt3: {t}" for t in envs.metaworld_set_tasks("mt3")]
+    assert [line.split(" | ")[0] for line in table] == [f"| metaworld-mt3: {t}" for t in envs.metaworld_set_tasks("mt3")] \
+        + ["| metaworld-mt3: mean over 3 tasks"]
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
     assert plot.main([str(run_dir), "--per-task", "--csv", "train", "--out", str(tmp_path / "u.png")]) == 2
 
 
-def test_finetune_starts_from_the_source_networks(mt3_run, tmp_path):
+def test_finetune_starts_from_the_whole_source_agent_by_default(mt3_run, tmp_path):
+    """The authors' default (cfgs/agent/common.yaml pretrain.just_encoder_decoders: false): encoder,
+    decoders, actor and critic; fresh optimisers."""
     source_dir, _ = mt3_run
     args = ["--run-root", str(tmp_path / "runs"), "--env", "metaworld-peg-insert-side", "--init-from",
-            str(source_dir), "--init-parts", "all", *TINY, "--frames", "8", "--seed-frames", "100"]
+            str(source_dir), *TINY, "--frames", "8", "--seed-frames", "100"]
     assert sear.main(args) == 0  # the CLI in this process; no update: the seed frames outlast the budget
     (run_dir,) = (tmp_path / "runs").iterdir()
     config = json.loads((run_dir / "config.json").read_text())
@@ -249,8 +252,7 @@ def test_finetune_starts_from_the_source_networks(mt3_run, tmp_path):
     (["--env", "metaworld-hammer", "--latent-dim", "128"],
      "--init-from: the source run has --latent-dim 64 but this run 128;"),
     (["--env", "metaworld-hammer", "--method", "drq"], "--init-from: the source run has --method sear but this run drq;"),
-    (["--env", "walker-walk", "--init-parts", "all"],
-     "--init-parts all: the source run's actor has 4 actions, walker-walk has 6;"),
+    (["--env", "walker-walk"], "--init-parts all: the source run's actor has 4 actions, walker-walk has 6;"),
 ])
 def test_init_from_refuses_mismatches_and_creates_nothing(mt3_run, tmp_path, capsys, extra, message):
     source_dir, _ = mt3_run

@@ -78,17 +78,24 @@ def test_aggregate_single_run_has_no_band():
     assert np.isnan(ci).all()
 
 
-def test_aggregate_eval_uses_common_frames_train_interpolates():
+def test_aggregate_draws_each_run_to_its_own_end():
     a = (np.array([0.0, 10.0, 20.0]), np.array([0.0, 10.0, 20.0]))
     b = (np.array([0.0, 5.0, 10.0]), np.array([2.0, 4.0, 6.0]))
-    frames, mean, _ = plot.aggregate([a, b])  # intersection: 0, 10 (b stopped at 10)
-    np.testing.assert_array_equal(frames, [0, 10])
-    np.testing.assert_allclose(mean, [1, 8])
-    frames, mean, _ = plot.aggregate([a, b], interpolate=True)  # union cut to [0, 10]; a(5) = 5
-    np.testing.assert_array_equal(frames, [0, 5, 10])
-    np.testing.assert_allclose(mean, [1, 4.5, 8])
-    with pytest.raises(plot.PlotError):
-        plot.aggregate([a, (np.array([1.0, 2.0]), np.array([0.0, 0.0]))])  # nothing in common
+    # eval: every frame either run was evaluated at; the mean over the runs evaluated there
+    frames, mean, ci = plot.aggregate([a, b])
+    np.testing.assert_array_equal(frames, [0, 5, 10, 20])
+    np.testing.assert_allclose(mean, [1, 4, 8, 20])
+    np.testing.assert_array_equal(plot.coverage([a, b]), [2, 1, 2, 1])
+    assert np.isnan(ci[[1, 3]]).all() and np.isfinite(ci[[0, 2]]).all()  # no band over a single run
+    np.testing.assert_allclose(ci[0], plot.t_quantile(0.975, 1) * np.std([0, 2], ddof=1) / math.sqrt(2))
+    # train: each run interpolated within its own span (a(5) = 5); b stops at 10
+    frames, mean, _ = plot.aggregate([a, b], interpolate=True)
+    np.testing.assert_array_equal(frames, [0, 5, 10, 20])
+    np.testing.assert_allclose(mean, [1, 4.5, 8, 20])
+    np.testing.assert_array_equal(plot.coverage([a, b], interpolate=True), [2, 2, 2, 1])
+    frames, mean, _ = plot.aggregate([a, (np.array([1.0, 2.0]), np.array([5.0, 5.0]))])  # no frame in common
+    np.testing.assert_array_equal(frames, [0, 1, 2, 10, 20])
+    np.testing.assert_allclose(mean, [0, 5, 5, 10, 20])
 
 
 # ---------------------------------------------------------------- finding and grouping runs
@@ -239,3 +246,188 @@ def test_load_run_skips_empty_cells(tmp_path):
     run = plot.load_run(str(d))
     np.testing.assert_array_equal(run["frames"], [10000])
     np.testing.assert_array_equal(run["values"], [7.5])
+
+
+# ---------------------------------------------------------------- --reference: published curves
+def write_published(path, rows, task_column=True):
+    """A curve file as facebookresearch/drqv2 ships them (curves/dmc_<task>.csv): an index column,
+    agent, task, seed, frame, episode_reward, hour. rows: (task, seed, frame, return)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["", "agent", *(["task"] if task_column else []), "seed", "frame", "episode_reward", "hour"])
+        for i, (task, seed, frame, ret) in enumerate(rows):
+            w.writerow([i, "DrQ-v2", *([task] if task_column else []), seed, frame, ret, frame / 4e5])
+    return path
+
+
+def published_rows(task="cartpole_balance_sparse"):
+    """3 seeds at 0/20k/40k frames; seed 3 also has 60k, which the others lack."""
+    values = {1: (50, 100, 1000), 2: (30, 400, 900), 3: (40, 700, 950)}
+    rows = [(task, s, f, v) for s, vs in values.items() for f, v in zip((0, 20000, 40000), vs)]
+    return rows + [(task, 3, 60000, 1000)]
+
+
+def test_load_reference_mean_and_min_max_over_seeds_on_their_common_frames(tmp_path):
+    path = write_published(tmp_path / "dmc_cartpole_balance_sparse.csv", published_rows())
+    curves = plot.load_reference(str(path))
+    assert list(curves) == ["cartpole_balance_sparse"]
+    ref = curves["cartpole_balance_sparse"]
+    np.testing.assert_array_equal(ref["frames"], [0, 20000, 40000])  # 60k: one seed only
+    np.testing.assert_allclose(ref["mean"], [40, 400, 950])
+    np.testing.assert_allclose(ref["min"], [30, 100, 900])
+    np.testing.assert_allclose(ref["max"], [50, 700, 1000])
+    assert ref["seeds"] == 3 and ref["label"] == "DrQ-v2 (published)"
+    assert plot.load_reference(str(path), "theirs")["cartpole_balance_sparse"]["label"] == "theirs"
+
+
+def test_reference_without_task_column_takes_the_task_from_the_file_name(tmp_path):
+    path = write_published(tmp_path / "dmc_walker_stand.csv", published_rows("walker_stand"), task_column=False)
+    assert list(plot.load_reference(str(path))) == ["walker_stand"]
+
+
+def test_parse_reference_label_and_paths_with_colons(tmp_path):
+    assert plot.parse_reference("a/dmc_x.csv:DrQ-v2 paper") == ("a/dmc_x.csv", "DrQ-v2 paper")
+    assert plot.parse_reference("a/dmc_x.csv") == ("a/dmc_x.csv", None)
+    odd = tmp_path / "run:1.csv"
+    odd.write_text("")
+    assert plot.parse_reference(str(odd)) == (str(odd), None)
+
+
+def test_reference_is_drawn_on_the_panel_of_its_task_only(tmp_path, capsys, monkeypatch):
+    root = tmp_path / "runs"
+    for seed in (1, 2):
+        make_run(root, "walker-walk", "drq", seed)
+        make_run(root, "cartpole-balance_sparse", "drq", seed, frames=(0, 10000, 20000, 30000))
+    path = write_published(tmp_path / "dmc_cartpole_balance_sparse.csv", published_rows())
+    drawn = []
+    real = plot.draw_reference
+    monkeypatch.setattr(plot, "draw_reference", lambda ax, ref, i=0: drawn.append((ax.get_title(), ref, ax))
+                        or real(ax, ref, i))
+    code, _, err = run_main(capsys, root, "--out", tmp_path / "x.png", "--reference", f"{path}:DrQ-v2 paper")
+    assert code == 0, err
+    assert [(title, ref["label"]) for title, ref, _ in drawn] == [("", "DrQ-v2 paper")]  # title is set after
+    ax = drawn[0][2]
+    assert ax.get_title() == "cartpole-balance_sparse"
+    mean_line = next(line for line in ax.get_lines() if line.get_label().startswith("DrQ-v2 paper"))
+    np.testing.assert_allclose(mean_line.get_ydata(), [40, 400, 950])
+    assert mean_line.get_label() == "DrQ-v2 paper (n=3: mean, min-max)"
+    assert ax.get_xlim()[1] < 40000  # the runs' range (30k frames), not the published curve's
+    assert (tmp_path / "x.png").read_bytes().startswith(PNG_MAGIC)
+
+
+@pytest.mark.parametrize("breakage", ["no file", "no episode_reward", "other task", "two agents", "bad frame"])
+def test_bad_reference_is_one_line_exit_2(runs, tmp_path, capsys, breakage):
+    path = tmp_path / "dmc_walker_walk.csv"
+    rows = published_rows("walker_walk")
+    if breakage == "no episode_reward":
+        path.write_text(",agent,task,seed,frame,return\n0,DrQ-v2,walker_walk,1,0,3.0\n")
+    elif breakage == "other task":
+        write_published(path, published_rows("cartpole_balance"))
+    elif breakage in ("two agents", "bad frame"):
+        write_published(path, rows)
+        extra = "99,CURL,walker_walk,1,0,5.0,0" if breakage == "two agents" else "99,DrQ-v2,walker_walk,1,soon,5.0,0"
+        path.write_text(path.read_text() + extra + "\n")
+    code, _, err = run_main(capsys, runs, "--out", tmp_path / "x.png", "--reference", path)
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("plot.py: error: --reference"), err
+    assert not (tmp_path / "x.png").exists()
+
+
+# ---------------------------------------------------------------- lines: settings, uneven ends, axes, task means
+def set_config(run_dir, **values):
+    config = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps({**config, **values}))
+
+
+def test_runs_that_differ_in_a_setting_are_separate_lines_named_by_it(tmp_path, capsys):
+    root = tmp_path / "runs"
+    for seed in (1, 2):
+        set_config(make_run(root, "walker-walk", "sear", seed), mask_source="sim", device="cpu")
+        set_config(make_run(root, "walker-walk", "sear", seed + 2, base=100.0), mask_source="learned:seg.pt",
+                   device="cuda")  # the device is not a setting: it does not split a line
+    code, out, err = run_main(capsys, root, "--out", tmp_path / "x.png")
+    assert code == 0, err
+    rows = [line for line in out.splitlines() if line.startswith("| walker-walk")]
+    # learned: seeds 3, 4 -> 100 + 35 + 20 at frame 20000; sim: seeds 1, 2 -> 15 + 20
+    ci = f"{plot.t_quantile(0.975, 1) * 5:.3g}"
+    assert rows == [f"| walker-walk | sear mask_source=learned:seg.pt | 2 | 20000 | 155 ± {ci} |",
+                    f"| walker-walk | sear mask_source=sim | 2 | 20000 | 35 ± {ci} |"]
+
+
+def test_a_key_older_runs_lack_does_not_split_them_from_newer_ones(tmp_path, capsys):
+    root = tmp_path / "runs"
+    set_config(make_run(root, "walker-walk", "sear", 1), kitchen_camera="fixed")  # a newer sear.py's key
+    make_run(root, "walker-walk", "sear", 2)
+    code, out, err = run_main(capsys, root, "--out", tmp_path / "x.png")
+    assert code == 0, err
+    assert [line.split(" | ")[1] for line in out.splitlines() if line.startswith("| walker-walk")] == ["sear"]
+
+
+def test_not_a_setting_covers_what_a_resume_may_change():
+    import cli
+    assert cli.RESUME_MAY_CHANGE <= plot.NOT_A_SETTING
+
+
+def test_a_run_that_stopped_early_is_drawn_to_its_end_and_named(runs, tmp_path, capsys, monkeypatch):
+    import matplotlib.axes
+    drawn = []
+    real = matplotlib.axes.Axes.plot
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot",
+                        lambda ax, x, y, *a, **k: drawn.append((k.get("ls"), np.asarray(y))) or real(ax, x, y, *a, **k))
+    short = sorted(runs.glob("*__drq__1__*"))[0]
+    (short / "eval.csv").write_text("frame,step,episode,return,wall_time\n0,0,0,10,1\n10000,5000,1,20,2\n")
+    code, out, err = run_main(capsys, runs, "--out", tmp_path / "x.png")
+    assert code == 0, err
+    assert err.splitlines() == ["plot.py: warning: drq (walker-walk): runs end at frames 10000, 20000 (x2); each is "
+                                "drawn to its own end, the mean and CI at a frame are over the runs that reached it "
+                                "(dashed where not all did)"]
+    # drq's last frame: seeds 2 and 3 only (40 and 50 at frame 20000); the group is not cut to 10000
+    assert f"| walker-walk | drq | 3 (2 at the last frame) | 20000 | 45 ± {plot.t_quantile(0.975, 1) * 5:.3g} |" in out
+    assert "| walker-walk | sear | 3 | 20000 | 140 ± 24.8 |" in out
+    assert drawn[0][0] is None and drawn[1][0] == "--"  # drq: solid where all 3 runs are, then dashed
+    np.testing.assert_allclose(drawn[0][1], [20, 30, np.nan])
+    np.testing.assert_allclose(drawn[1][1], [np.nan, 30, 45])
+
+
+def test_success_axes_stay_in_0_1(runs, tmp_path, capsys, monkeypatch):
+    import matplotlib.figure
+    limits = []
+    real = matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig",
+                        lambda fig, *a, **k: limits.extend(ax.get_ylim() for ax in fig.axes) or real(fig, *a, **k))
+    root = tmp_path / "mw"
+    for seed in (1, 2, 3):  # every success 0: matplotlib's own margins would reach -0.04
+        d = make_run(root, "mw-reach", "sear", seed, success=True)
+        (d / "eval.csv").write_text("frame,return,success\n0,1,0\n10000,2,0\n")
+    code, _, err = run_main(capsys, root, "--metric", "success", "--out", tmp_path / "s.png")
+    assert code == 0, err
+    assert limits == [(0.0, 1.0)]
+    code, _, err = run_main(capsys, root, "--metric", "return", "--out", tmp_path / "r.png")
+    assert code == 0 and limits[1] != (0.0, 1.0)  # returns keep their own scale
+
+
+def make_task_set_run(root, seed, per_task):
+    """A metaworld-mt3-like run: eval.csv with success/<task> columns, per_task = {task: [values]}."""
+    d = root / f"metaworld-mt3__sear__{seed}__20240101-000000"
+    d.mkdir(parents=True)
+    (d / "config.json").write_text(json.dumps({"env": "metaworld-mt3", "method": "sear", "seed": seed}))
+    tasks = list(per_task)
+    lines = ["frame,return,success," + ",".join(f"success/{t}" for t in tasks)]
+    for i, frame in enumerate((0, 10000)):
+        values = [per_task[t][i] for t in tasks]
+        lines.append(f"{frame},0,{np.mean(values)}," + ",".join(str(v) for v in values))
+    (d / "eval.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_per_task_adds_a_panel_with_the_mean_over_tasks(tmp_path, capsys):
+    root = tmp_path / "runs"
+    make_task_set_run(root, 1, {"hammer": [0.0, 0.2], "door-open": [0.0, 0.6]})
+    make_task_set_run(root, 2, {"hammer": [0.0, 0.4], "door-open": [0.0, 1.0]})
+    code, out, err = run_main(capsys, root, "--per-task", "--metric", "success", "--out", tmp_path / "t.png")
+    assert code == 0, err
+    rows = [line for line in out.splitlines() if line.startswith("| metaworld-mt3")]
+    # per run the mean over the 2 tasks at frame 10000: 0.4 and 0.7 -> 0.55 +- t(0.975, 1) * 0.15 / 1
+    assert rows[-1] == (f"| metaworld-mt3: mean over 2 tasks | sear | 2 | 10000 | 0.55 ± "
+                        f"{plot.t_quantile(0.975, 1) * np.std([0.4, 0.7], ddof=1) / math.sqrt(2):.3g} |")
+    assert [r.split(" | ")[0] for r in rows] == ["| metaworld-mt3: hammer", "| metaworld-mt3: door-open",
+                                                 "| metaworld-mt3: mean over 2 tasks"]

@@ -1,5 +1,8 @@
 """Unit tests of sear.py's pieces: networks, losses (Eq. 4-6), augmentation, replay buffer."""
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -17,7 +20,7 @@ def small_cfg(**kw):
     return sear.Config(**base)
 
 
-def fake_batch(n=4, stack=3, action_dim=2, seed=0):
+def fake_batch(n=4, stack=3, action_dim=2, seed=0, device="cpu"):
     g = torch.Generator().manual_seed(seed)
     obs = torch.randint(0, 256, (n, 3 * stack, 84, 84), generator=g).float()
     mask = (torch.rand(n, stack, 84, 84, generator=g) > 0.7).float()
@@ -26,7 +29,7 @@ def fake_batch(n=4, stack=3, action_dim=2, seed=0):
     discount = torch.full((n, 1), 0.99)
     next_obs = torch.randint(0, 256, (n, 3 * stack, 84, 84), generator=g).float()
     next_mask = (torch.rand(n, stack, 84, 84, generator=g) > 0.7).float()
-    return sear.Batch(obs, mask, action, reward, discount, next_obs, next_mask)
+    return sear.Batch(*(x.to(device) for x in (obs, mask, action, reward, discount, next_obs, next_mask)))
 
 
 # ---------------------------------------------------------------- networks
@@ -75,9 +78,9 @@ def test_recon_loss_zero_for_perfect_reconstruction():
     assert sear.summed_mse(obs, obs + 1.0).item() == pytest.approx(9 * 84 * 84)  # summed, not averaged
 
 
-def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask():
+def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask(device):
     cfg = small_cfg(recon_coef=0.5, mask_coef=0.25)
-    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    agent = sear.Agent(cfg, action_dim=2, device=device)
     torch.manual_seed(0)
     loss, latent, m = agent.joint_loss(fake_batch(), step=0)
     expected = m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]
@@ -92,22 +95,22 @@ def test_paper_defaults():
     assert (cfg.replay_size, cfg.seed_frames, cfg.critic_tau, cfg.lr) == (250_000, 4000, 0.01, 1e-4)
 
 
-def test_actor_loss_does_not_reach_encoder():
+def test_actor_loss_does_not_reach_encoder(device):
     cfg = small_cfg()
-    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
-    latent, _ = agent.update_critic(fake_batch(), step=0)
+    agent = sear.Agent(cfg, action_dim=2, device=device)
+    latent, _ = agent.update_critic(fake_batch(device=device), step=0)
     agent.model_opt.zero_grad(set_to_none=True)
     agent.update_actor(latent, step=0)
     assert all(p.grad is None for p in agent.encoder.parameters())
     assert any(p.grad is not None for p in agent.actor.parameters())
 
 
-def test_actor_metrics_show_a_saturated_state_independent_actor():
+def test_actor_metrics_show_a_saturated_state_independent_actor(device):
     """actor_saturated counts action dims where float32 tanh is exactly +-1 (zero gradient);
     action_spread is the std of the mean action over the batch (0: the same action in every state)."""
     cfg = small_cfg()
-    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
-    latent = torch.randn(8, agent.encoder.repr_dim)
+    agent = sear.Agent(cfg, action_dim=2, device=device)
+    latent = torch.randn(8, agent.encoder.repr_dim, device=device)
     fresh = agent.update_actor(latent, step=0)
     assert fresh["actor_saturated"] == 0.0 and fresh["action_spread"] > 0.0
     with torch.no_grad():  # a last layer pushed past tanh's float32 range, as in EXPERIMENTS rung 2
@@ -118,12 +121,12 @@ def test_actor_metrics_show_a_saturated_state_independent_actor():
     assert all(p.grad is None or not p.grad.any() for p in agent.actor.policy.parameters())
 
 
-def test_actor_update_leaves_the_critic_without_gradients_and_takes_drqv2s_step():
+def test_actor_update_leaves_the_critic_without_gradients_and_takes_drqv2s_step(device):
     """The critic is frozen during the actor's step: no gradient lands on it, it stays trainable,
     and the actor's gradient is the one DrQ-v2 computes with the critic's weights requiring grad."""
     cfg = small_cfg()
-    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
-    latent = torch.randn(8, agent.encoder.repr_dim)
+    agent = sear.Agent(cfg, action_dim=2, device=device)
+    latent = torch.randn(8, agent.encoder.repr_dim, device=device)
     torch.manual_seed(1)
     dist = agent.actor(latent, 0.5)
     (-torch.min(*agent.critic(latent, dist.sample(clip=cfg.std_clip))).mean()).backward()
@@ -139,11 +142,11 @@ def test_actor_update_leaves_the_critic_without_gradients_and_takes_drqv2s_step(
     assert all(p.grad is None and p.requires_grad for p in agent.critic.parameters())
 
 
-def test_critic_and_aux_losses_reach_encoder():
+def test_critic_and_aux_losses_reach_encoder(device):
     cfg = small_cfg()
-    agent = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    agent = sear.Agent(cfg, action_dim=2, device=device)
     before = [p.detach().clone() for p in agent.encoder.parameters()]
-    agent.update_critic(fake_batch(), step=0)
+    agent.update_critic(fake_batch(device=device), step=0)
     assert any(not torch.equal(b, p) for b, p in zip(before, agent.encoder.parameters()))
 
 
@@ -268,14 +271,14 @@ def test_bytes_per_transition_within_target():
 
 
 # ---------------------------------------------------------------- acting
-def test_act_returns_bounded_action_and_rgbm_needs_mask():
+def test_act_returns_bounded_action_and_rgbm_needs_mask(device):
     cfg = small_cfg()
-    agent = sear.Agent(cfg, action_dim=3, device=torch.device("cpu"))
+    agent = sear.Agent(cfg, action_dim=3, device=device)
     pixels = np.random.randint(0, 256, (9, 84, 84), dtype=np.uint8)
     mask = np.zeros((3, 84, 84), dtype=np.uint8)
     a = agent.act(pixels, mask, step=10**6, eval_mode=False)
     assert a.shape == (3,) and a.dtype == np.float32 and np.all(np.abs(a) <= 1)
-    rgbm = sear.Agent(small_cfg(method="rgbm"), action_dim=3, device=torch.device("cpu"))
+    rgbm = sear.Agent(small_cfg(method="rgbm"), action_dim=3, device=device)
     assert rgbm.encoder.convs[0].in_channels == 12
     with pytest.raises(ValueError, match="mask"):
         rgbm.act(pixels, None, step=0, eval_mode=True)
@@ -296,6 +299,23 @@ def parse(argv):
     return cli.parse_args(argv, sear.Config, sear.METHODS)[0]
 
 
+@pytest.mark.parametrize("env, steps", [
+    ("walker-walk", 100_000), ("cup-catch", 100_000), ("cartpole-balance_sparse", 100_000),   # easy.yaml
+    ("cheetah-run", 500_000), ("walker-run", 500_000), ("reacher-hard", 500_000),           # medium.yaml
+    ("humanoid-run", 2_000_000),                                                            # hard.yaml
+    ("fish-swim", 500_000),               # not in DrQ-v2's table: medium, as its default task
+    ("walker-walk-distracting", 500_000), ("cup-catch-distracting", 500_000),   # the authors' distracting.yaml
+    ("metaworld-door-open", 500_000), ("kitchen-kettle", 500_000), ("adroit-pen", 500_000),
+    ("metaworld-mt10", 2_000_000)])
+def test_exploration_schedule_per_task_as_drqv2(env, steps):
+    """DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml decay the std over 100k / 500k / 2M
+    agent steps by task; the paper's Distracting Control tasks and the manipulation suites keep 500k,
+    task sets 2M. Under both recipes; an explicit --std-steps wins."""
+    for recipe in ("paper", "authors"):
+        assert parse(["--env", env, "--recipe", recipe]).std_steps == steps
+    assert parse(["--env", env, "--std-steps", "7"]).std_steps == 7
+
+
 def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     paper = parse(["--env", "walker-walk-distracting"])
     assert paper == sear.Config(env="walker-walk-distracting")
@@ -310,14 +330,20 @@ def test_recipe_paper_is_the_defaults_and_authors_follows_their_code(capsys):
     assert mw.discount == pytest.approx(0.99 ** 3) and mw.mask_downsample == "stride"
     kitchen = parse(["--env", "kitchen-kettle", "--recipe", "authors"])
     assert kitchen.discount == pytest.approx(0.99 ** 2)
+    humanoid = parse(["--env", "humanoid-walk", "--recipe", "authors"])
+    assert (humanoid.lr, humanoid.feature_dim, humanoid.replay_size) == (8e-5, 100, 250_000)  # DrQ-v2's hard cfgs
+    quadruped = parse(["--env", "quadruped-run", "--recipe", "authors"])
+    assert (quadruped.lr, quadruped.feature_dim, quadruped.replay_size) == (1e-4, 50, 100_000)
+    assert parse(["--env", "humanoid-walk"]).lr == 1e-4   # the paper's table
     explicit = parse(["--env", "walker-walk", "--recipe", "authors", "--nstep", "3", "--recon-coef", "0.5"])
     assert (explicit.nstep, explicit.recon_coef, explicit.batch_size) == (3, 0.5, 512)  # flags win
     with pytest.raises(cli.ConfigError, match="--recipe"):
         parse(["--recipe", "mine"])
 
 
-def test_prefetcher_delivers_the_batches_direct_sampling_would():
-    """The background sampler draws from the same RNG in the same order (CPU: no pinned copy)."""
+def test_prefetcher_delivers_the_batches_direct_sampling_would(device):
+    """The background sampler draws from the same RNG in the same order (on CUDA: through pinned memory
+    and its own stream)."""
     buf = sear.ReplayBuffer(100, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
     rng = np.random.default_rng(0)
     for ep in range(3):
@@ -328,12 +354,13 @@ def test_prefetcher_delivers_the_batches_direct_sampling_would():
                     {"pixels": rng.integers(0, 256, (9, 84, 84), dtype=np.uint8),
                      "mask": rng.integers(0, 2, (3, 84, 84), dtype=np.uint8)})
     direct = [buf.sample(8, r) for r in [np.random.default_rng(5)] for _ in range(3)]
-    pre = experiment.Prefetcher(buf, 8, np.random.default_rng(5), torch.device("cpu"), margin=4)
+    pre = experiment.Prefetcher(buf, 8, np.random.default_rng(5), device, margin=4)
     fetched = [pre.next() for _ in range(3)]
     pre.close()
     assert not pre.thread.is_alive()
     for d, f in zip(direct, fetched):
-        assert all(np.array_equal(x, y.numpy()) for x, y in zip(d, f))
+        assert all(y.device == device for y in f)
+        assert all(np.array_equal(x, y.cpu().numpy()) for x, y in zip(d, f))
 
 
 def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
@@ -349,3 +376,15 @@ def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
     assert isinstance(fetched[0], sear.Batch) and start_times.min() >= oldest + 7
     direct = buf.sample(64, np.random.default_rng(0)).obs[:, -3, 0, 0].astype(int)
     assert direct.min() < oldest + 7
+
+
+@pytest.mark.parametrize("name, code, says", [("cpu", 0, "1 passed"), ("nonsense", 2, "is not a torch device")]
+                         + ([] if torch.cuda.is_available() else [("cuda", 2, "torch sees no CUDA device")]))
+def test_sear_test_device_sets_the_device_fixture(name, code, says):
+    """benchmarks/gpu_check.sh runs the suite with SEAR_TEST_DEVICE=cuda: the `device` fixture (tests/conftest.py)
+    hands it to every test that takes a device, and a device torch cannot use stops the run at once."""
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                        f"{__file__}::test_prefetcher_delivers_the_batches_direct_sampling_would"],
+                       env={**os.environ, "SEAR_TEST_DEVICE": name}, capture_output=True, text=True,
+                       cwd=os.path.dirname(os.path.dirname(__file__)), timeout=300)
+    assert r.returncode == code and says in r.stdout, r.stdout[-2000:] + r.stderr[-2000:]

@@ -1,9 +1,12 @@
 """sweep.py: the paper's grids, bad input, a real local sweep killed midway and finished, failing
-jobs, locks, resume-or-restart, and a SLURM submission through stand-in sbatch/srun commands."""
+jobs, locks, resume-or-restart, GPUs per job, SLURM through stand-in srun/sinfo/squeue/sbatch commands
+(what a one-node cluster cannot show: arrays over many nodes, GPUs, refusals) and through a real
+one-node SLURM (SEAR_REAL_SLURM=1, .ci/run), and the report."""
 import csv
 import json
 import os
 import re
+import shutil
 import signal
 import stat
 import subprocess
@@ -11,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import sweep
@@ -106,7 +110,7 @@ def test_bad_input_fails_the_whole_sweep_up_front(tmp_path, capsys, argv, messag
 # ------------------------------------------------------------------------------- a real local sweep
 def sweep_args(out, *extra):
     return ["--envs", "walker-walk", "cup-catch", "--methods", "drq", "sear", "--seeds", "1", "--out", str(out),
-            *extra, "--", *TINY]
+            "--engine", "local", *extra, "--", *TINY]
 
 
 def test_local_sweep_killed_midway_then_rerun_finishes_without_duplicates(tmp_path, capsys):
@@ -152,7 +156,7 @@ def test_local_sweep_killed_midway_then_rerun_finishes_without_duplicates(tmp_pa
         assert attempts(d) == (2 if d == first else 1), d
         stamps[d] = (runs[0] / "eval.csv").stat().st_mtime_ns
     assert "resumed at frame 20" in (first / "stdout.log").read_text()
-    assert (folder / "report.png").exists() and "mean over 2 tasks" in (folder / "report.md").read_text()
+    assert (folder / "report.png").exists() and "| sear | 1 seed x 2 tasks | 60 |" in (folder / "report.md").read_text()
 
     # The same sweep again: everything is finished, nothing starts.
     assert sweep.main(sweep_args(out)) == 0
@@ -178,7 +182,7 @@ def test_a_failing_job_is_reported_with_its_error_and_the_others_still_run(tmp_p
     monkeypatch.setattr(sweep, "SEAR_PY", str(fake))
     out = tmp_path / "sweeps"
     argv = ["--out", str(out), "--envs", "cup-catch", "walker-walk", "--methods", "drq", "sear", "--seeds", "1",
-            "--jobs", "1", "--frames", "40"]
+            "--engine", "local", "--jobs", "1", "--frames", "40"]
     assert sweep.main(argv) == 1  # the cup-catch jobs run first and fail; the walker ones run anyway
     printed = capsys.readouterr().out
     assert printed.count("failed: exit code 1: RuntimeError: the simulator exploded") == 2
@@ -233,7 +237,8 @@ def test_a_live_lock_is_respected_and_a_dead_one_taken_over(tmp_path):
 
 def test_the_sweep_never_starts_a_key_that_is_running(tmp_path, capsys):
     out = tmp_path / "sweeps"
-    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "sear", "--seeds", "1", "--frames", "40"]
+    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "sear", "--seeds", "1", "--engine", "local",
+            "--frames", "40"]
     _, specs, _ = plan(argv)
     busy = out / "custom" / specs[0].name
     busy.mkdir(parents=True)
@@ -264,15 +269,26 @@ def test_an_interrupted_run_resumes_from_its_snapshot_or_moves_aside_without_one
     assert "moved the snapshot-less run" in (d / "stdout.log").read_text()
 
 
-# ------------------------------------------------------------------------------- SLURM
-def test_slurm_is_detected_and_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatch, capsys):
-    bin_dir = tmp_path / "bin"  # stand-ins: srun marks a SLURM machine, sbatch keeps what it was given
+# ------------------------------------------------------------------------------- SLURM stand-ins
+def fake_slurm(tmp_path, monkeypatch, sinfo="gpu|gpu:4|64\n", sbatch=None):
+    """Stand-in srun (marks a SLURM machine), sinfo (prints `sinfo`: partition|gres|cpus rows), squeue (every
+    job pending) and sbatch (keeps the script it was given, or runs `sbatch` as its body), first on PATH
+    whatever this machine has."""
+    bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")
-    (bin_dir / "sbatch").write_text(f'#!/bin/sh\ncp "$1" {tmp_path}/submitted.sh\necho "Submitted batch job 4242"\n')
-    for tool in ("srun", "sbatch"):
+    scripts = {"srun": "exit 0",
+               "sinfo": f"cat <<'EOF'\n{sinfo}EOF",
+               "squeue": "echo PENDING",
+               "sbatch": sbatch or f'cp "$1" {tmp_path}/submitted.sh\necho "Submitted batch job 4242"'}
+    for tool, body in scripts.items():
+        (bin_dir / tool).write_text(f"#!/bin/sh\n{body}\n")
         (bin_dir / tool).chmod(stat.S_IRWXU)
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    return bin_dir
+
+
+def test_slurm_is_detected_and_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatch, capsys):
+    fake_slurm(tmp_path, monkeypatch, sinfo="cpu*|(null)|64\ngpu|gpu:a100:4(S:0-1)|32\n")
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "cup-catch", "--methods", "drq", "--seeds", "1-2",
                        "--partition", "gpu", "--account", "lab", "--time-limit", "600", "--threads", "2",
@@ -288,23 +304,279 @@ def test_slurm_is_detected_and_gets_one_array_with_the_cluster_flags(tmp_path, m
     assert capsys.readouterr().out.splitlines()[-1] == "4 jobs: 4 queued"
 
 
+def test_a_partition_without_gpus_gets_no_gpu_request(tmp_path, monkeypatch, capsys):
+    fake_slurm(tmp_path, monkeypatch, sinfo="cpu*|(null)|64\ngpu|gpu:4|32\n")
+    out = tmp_path / "sweeps"
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40"]) == 0
+    assert "(slurm, no GPU, as the default partition has none)" in capsys.readouterr().out
+    script = (tmp_path / "submitted.sh").read_text()
+    assert "--gpus" not in script and "--gres" not in script
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40",
+                       "--partition", "gpu", "--name", "g"]) == 0
+    assert "#SBATCH --gpus-per-node=1\n" in (tmp_path / "submitted.sh").read_text()
+
+
+@pytest.mark.parametrize("argv, sinfo, message", [
+    (["--gpus-per-job", "1"], "cpu*|(null)|64\n",
+     "--gpus-per-job 1: the nodes of the default partition have no GPUs; --gpus-per-job 0 runs on their CPUs (sinfo)"),
+    (["--gpus-per-job", "8", "--partition", "gpu"], "cpu*|(null)|64\ngpu|gpu:v100:2,gpu:a100:2|32\n",
+     "--gpus-per-job 8: the nodes of partition gpu have at most 4 GPU(s) (sinfo)"),
+    (["--partition", "gpus"], "cpu*|(null)|64\ngpu|gpu:4|32\n", "SLURM has no partition 'gpus' (sinfo lists cpu, gpu)"),
+    (["--threads", "48", "--partition", "gpu"], "cpu*|(null)|64\ngpu|gpu:4|32\n",
+     "--threads 48: the nodes of partition gpu have at most 32 CPUs (sinfo), so the jobs would never start"),
+])
+def test_what_slurm_cannot_give_fails_before_anything_is_created(tmp_path, monkeypatch, capsys, argv, sinfo, message):
+    fake_slurm(tmp_path, monkeypatch, sinfo=sinfo)
+    out = tmp_path / "sweeps"
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40", *argv]) == 2
+    assert capsys.readouterr().err == f"sweep.py: error: {message}\n"
+    assert not out.exists() and not (tmp_path / "submitted.sh").exists()
+
+
+@pytest.mark.parametrize("sbatch, message", [
+    ('echo "sbatch: error: Invalid generic resource (gres) specification" >&2; exit 1',
+     "sbatch refused the 2 job(s): Invalid generic resource (gres) specification "
+     "(--gpus-per-job 0 submits without a GPU request)"),
+    ('echo "sbatch: error: Memory specification can not be satisfied" >&2\n'
+     'echo "sbatch: error: Batch job submission failed: Requested node configuration is not available" >&2; exit 1',
+     "sbatch refused the 2 job(s): Memory specification can not be satisfied; Batch job submission failed: "
+     "Requested node configuration is not available (does a node have --mem-gb 32 GB?)"),
+    ('echo "sbatch: error: Batch job submission failed: Invalid account or account/partition combination" >&2; exit 1',
+     "sbatch refused the 2 job(s): Batch job submission failed: Invalid account or account/partition combination"),
+    ('echo "queued, no id"', 'sbatch refused the 2 job(s): Could not make sense of sbatch output "queued, no id"'),
+])
+def test_a_refused_submission_is_one_line_with_sbatchs_reason(tmp_path, monkeypatch, capsys, sbatch, message):
+    fake_slurm(tmp_path, monkeypatch, sinfo="gpu*|gpu:1|8\n", sbatch=sbatch)
+    out = tmp_path / "sweeps"
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2",
+                       "--frames", "40"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"sweep.py: error: {message}") and err.count("\n") == 1, err
+    assert sweep.main(["--out", str(out), "--status"]) == 0  # nothing was queued
+    assert capsys.readouterr().out.splitlines()[-1] == "2 jobs: 2 not started"
+
+
+def test_no_sbatch_is_one_line(tmp_path, monkeypatch, capsys):
+    bin_dir = fake_slurm(tmp_path, monkeypatch)
+    (bin_dir / "sbatch").unlink()
+    monkeypatch.setenv("PATH", str(bin_dir))  # srun and sinfo, but no sbatch anywhere
+    assert sweep.main(["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--methods", "drq",
+                       "--frames", "40"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sweep.py: error: sbatch refused the 1 job(s): [Errno 2] No such file or directory") \
+        and err.count("\n") == 1, err
+
+
+def test_a_job_requeued_at_its_time_limit_takes_its_own_lock_over_and_resumes(tmp_path, monkeypatch):
+    """What a one-node cluster cannot show: the requeued job starts on another node while squeue still
+    lists the job, so the old holder looks alive."""
+    fake_slurm(tmp_path, monkeypatch)  # squeue: every job listed
+    job, d = make_job(tmp_path)
+    run = d / "run" / "walker-walk__drq__1__20260101-000000"
+    run.mkdir(parents=True)
+    (run / "snapshot.pt").write_bytes(b"stand-in")
+    me = {**sweep.whoami(), "job": "4242_3", "cluster": "slurm"}
+    monkeypatch.setattr(sweep, "whoami", lambda: me)
+    sweep.write_json(str(d / "lock"), {"pid": 1, "host": "node-a", "job": "4242_7", "cluster": "slurm"})
+    assert job().startswith("skipped: already running (pid 1 on node-a, slurm job 4242_7)")  # another job
+    sweep.write_json(str(d / "lock"), {"pid": 1, "host": "node-a", "job": "4242_3", "cluster": "slurm"})
+    again = job.checkpoint()  # what submitit calls at the time limit: the same call, requeued
+    assert again.function is job and not again.args
+    assert again.function() == "done"
+    assert calls(tmp_path) == [["3", "--resume", str(run), "--device", "auto"]]
+
+
+# ------------------------------------------------------------------------------- a real SLURM
+# .ci/run brings up a one-node cluster (.ci/slurm_up.sh) and sets SEAR_REAL_SLURM=1: there this test
+# must run. Elsewhere it is skipped: on a user's cluster its jobs could wait in a queue for hours.
+REAL_SLURM = os.environ.get("SEAR_REAL_SLURM") == "1"
+
+
+def slurm_answers() -> bool:
+    if shutil.which("sinfo") is None or shutil.which("sbatch") is None:
+        return False
+    r = subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True)
+    return r.returncode == 0 and any(s.rstrip("*") in ("idle", "mixed", "allocated") for s in r.stdout.split())
+
+
+def wait_for(what, test, seconds=600):
+    deadline = time.time() + seconds
+    while not test():
+        assert time.time() < deadline, f"no {what} after {seconds} s"
+        time.sleep(0.2)
+
+
+def in_queue(job_id: str) -> bool:
+    return bool(subprocess.run(["squeue", "-h", "-j", job_id], capture_output=True, text=True).stdout.strip())
+
+
+@pytest.mark.skipif(not REAL_SLURM, reason="needs SEAR_REAL_SLURM=1 and a cluster up (.ci/slurm_up.sh)")
+def test_real_slurm_sweep_cancelled_midway_resumes_and_then_submits_nothing(tmp_path, capsys):
+    if not slurm_answers():
+        pytest.fail("SEAR_REAL_SLURM=1 but SLURM does not answer (sinfo shows no idle node): run .ci/slurm_up.sh")
+    out = tmp_path / "sweeps"
+    folder = out / "real"
+    # 300 frames: seconds between the first snapshot (frame 20) and the end, time enough to scancel.
+    argv = ["--out", str(out), "--name", "real", "--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2",
+            "--engine", "slurm", "--threads", "1", "--mem-gb", "1", "--time-limit", "30",
+            "--", *TINY, "--frames", "300", "--eval-every", "100"]
+    assert sweep.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert ("2 jobs (1 envs x 1 methods x 2 seeds): 0 done, 0 running elsewhere, 2 to run "
+            "(slurm, no GPU, as the default partition has none)") in printed
+    assert "submitted 2 jobs" in printed
+    first, second = (next(folder.glob(f"walker-walk__drq__{seed}__*")) for seed in (1, 2))
+    script = next((folder / ".submitit").glob("*_submission.sh")).read_text()
+    assert "#SBATCH --array=0-1" in script and "--gpus" not in script  # the node has no GPU: none asked
+
+    # Cancel the first job once it has written a snapshot.
+    wait_for("snapshot", lambda: list(first.glob("run/*/snapshot.pt")))
+    job_id = sweep.read_json(str(first / "lock"))["job"]
+    subprocess.run(["scancel", job_id], check=True)
+    wait_for("end of the cancelled job", lambda: not in_queue(job_id))
+    wait_for("second job", lambda: (second / "DONE").exists())
+    assert not (first / "DONE").exists()
+    assert sweep.main(["--out", str(out), "--name", "real", "--status"]) == 0
+    states = {line.split()[0]: line.split()[1] for line in capsys.readouterr().out.splitlines()[1:-1]}
+    assert states == {first.name: "interrupted", second.name: "done"}
+
+    # The same sweep again: the cancelled job alone, resumed from its snapshot.
+    assert sweep.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "1 done, 0 running elsewhere, 1 to run" in printed and "submitted 1 jobs" in printed
+    wait_for("resumed job", lambda: (first / "DONE").exists())
+    assert re.search(r"resumed at frame [1-9]\d*", (first / "stdout.log").read_text())
+    assert attempts(first) == 2 and attempts(second) == 1
+    for d in (first, second):
+        (run,) = (d / "run").iterdir()
+        assert column(run / "eval.csv", "frame") == [0, 100, 200, 300], d  # no evaluation twice
+        frames = column(run / "train.csv", "frame")
+        assert frames == sorted(set(frames)) and frames[-1] == 300, d
+
+    # And again: everything is done, nothing is submitted.
+    assert sweep.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "2 done, 0 running elsewhere, 0 to run" in printed and "submitted" not in printed
+
+
+# ------------------------------------------------------------------------------- GPUs on this machine
+RECORDS_ITS_GPUS = """import json, os, sys
+with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "gpus.jsonl"), "a") as f:
+    f.write(json.dumps([sys.argv[sys.argv.index("--env") + 1], os.environ.get("CUDA_VISIBLE_DEVICES")]) + "\\n")
+"""
+
+
+@pytest.mark.parametrize("visible, flag, expected", [
+    (None, [], ["0", "1", "2"]),                      # one GPU per job, round robin
+    ("4,6,7", [], ["4", "6", "7"]),                   # the GPUs this process was given, by their names
+    (None, ["--gpus-per-job", "2"], ["0,1", "2,0", "1,2"]),
+    (None, ["--gpus-per-job", "0"], ["", "", ""]),    # on the CPU
+])
+def test_local_jobs_get_their_own_gpus_round_robin(tmp_path, monkeypatch, capsys, visible, flag, expected):
+    import torch
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 3)  # a machine with 3 GPUs
+    if visible is None:
+        monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    else:
+        monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+    fake = tmp_path / "fake_sear.py"
+    fake.write_text(RECORDS_ITS_GPUS)
+    monkeypatch.setattr(sweep, "SEAR_PY", str(fake))
+    envs = ["walker-walk", "cup-catch", "cheetah-run"]
+    assert sweep.main(["--out", str(tmp_path / "sweeps"), "--envs", *envs, "--methods", "drq", "--engine", "local",
+                       "--jobs", "3", *flag, "--frames", "40"]) == 0
+    got = dict(json.loads(line) for line in (tmp_path / "gpus.jsonl").read_text().splitlines())
+    assert [got[e] for e in envs] == expected
+    assert sweep.job_devices(1, ["0", "1"], 5) == ["0", "1", "0", "1", "0"]
+
+
+def test_local_gpus_it_cannot_give_fail_up_front(tmp_path, monkeypatch, capsys):
+    import torch
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    out = tmp_path / "sweeps"
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--engine", "local",
+                       "--gpus-per-job", "1", "--frames", "40"]) == 2
+    assert capsys.readouterr().err == ("sweep.py: error: --gpus-per-job 1: this machine has 0 GPU(s); "
+                                       "--gpus-per-job 0 runs on the CPU\n")
+    assert not out.exists()
+
+
+STOPPED_BY_SIGTERM = """import os, signal
+os.kill(os.getpid(), signal.SIGTERM)
+"""
+
+
+def test_a_run_stopped_by_sigterm_is_interrupted_not_failed(tmp_path):
+    job, d = make_job(tmp_path)
+    (tmp_path / "record.py").write_text(STOPPED_BY_SIGTERM)
+    assert job() == "interrupted: stopped by SIGTERM (killed by signal 15); re-run the sweep to resume"
+    assert sweep.job_state(str(d)) == ("interrupted", "stopped by SIGTERM (killed by signal 15); re-run the sweep "
+                                                      "to resume")
+    assert not (d / "DONE").exists()
+
+
 # ------------------------------------------------------------------------------- report
-def test_report_averages_each_seed_over_the_tasks_then_the_seeds(tmp_path, capsys):
-    out, specs = tmp_path / "sweeps", []
-    for env, scale in (("metaworld-hammer", 0.1), ("metaworld-door-open", 0.3)):
-        for seed in (1, 2, 3, 4):
+def fake_finished_runs(out, tasks, seeds=(1, 2, 3, 4), finished=(1, 2, 3), config=None):
+    """Sweep job folders with one run each; tasks = {env: (eval.csv header, row(seed) -> list of rows)}."""
+    specs = []
+    for env, (header, rows) in tasks.items():
+        for seed in seeds:
             spec = sweep.JobSpec("g", env, "sear", seed, "k", 10, (), ())
             specs.append(spec)
             run = out / "g" / spec.name / "run" / "r"
             run.mkdir(parents=True)
-            (run / "config.json").write_text(json.dumps({"env": env, "method": "sear", "seed": seed}))
-            (run / "eval.csv").write_text(f"frame,return,success\n0,0,0\n10,1,{scale * seed}\n")
-            if seed < 4:  # seed 4 is still running: left out
+            (run / "config.json").write_text(json.dumps({"env": env, "method": "sear", "seed": seed,
+                                                         "action_repeat": 2, "max_episode_steps": 0, **(config or {})}))
+            (run / "eval.csv").write_text(header + "\n" + "".join(f"{r}\n" for r in rows(seed)))
+            if seed in finished:  # the others are still running: left out
                 (out / "g" / spec.name / "DONE").write_text("")
+    return specs
+
+
+def iqm(values):
+    from rliable import metrics
+    return metrics.aggregate_iqm(np.array(values)[None])
+
+
+def aggregate_row(table, method):
+    """(IQM, its CI, mean, its CI) of a method in the report's across-task table."""
+    row = next(line for line in table.splitlines() if line.startswith(f"| {method} | ") and "[" in line)
+    numbers = [float(x) for x in re.findall(r"-?\d+\.\d+", row.split(" | ", 3)[3])]
+    return numbers[0], numbers[1:3], numbers[3], numbers[4:6]
+
+
+def test_report_success_rates_per_task_and_rliable_over_tasks(tmp_path):
+    out = tmp_path / "sweeps"
+    specs = fake_finished_runs(out, {
+        "metaworld-hammer": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.1 * s}"]),
+        "metaworld-door-open": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.3 * s}"])})
     table = sweep.report(str(out), "g", specs, None)
-    # success at frame 10 per seed: hammer 0.1 s, door-open 0.3 s; their mean 0.2 s over seeds 1-3
-    # -> 0.4 +- t(0.975, 2) * 0.2 / sqrt(3) = 0.4 +- 0.497
-    assert "| mean over 2 tasks | sear | 3 | 10 | 0.4 ± 0.497 |" in table
+    # per task: mean +- t(0.975, 2) * sd / sqrt(3) over seeds 1-3 (seed 4 unfinished)
     assert "| metaworld-hammer | sear | 3 | 10 | 0.2 ± 0.248 |" in table
+    # over the tasks: the 6 final success rates 0.1 0.2 0.3 | 0.3 0.6 0.9, as they are
+    point, ci, mean, mean_ci = aggregate_row(table, "sear")
+    assert point == pytest.approx(iqm([0.1, 0.2, 0.3, 0.3, 0.6, 0.9]), abs=5e-4) and point == pytest.approx(0.35)
+    assert mean == pytest.approx(0.4, abs=5e-4)
+    assert ci[0] < point < ci[1] and mean_ci[0] < mean < mean_ci[1]
+    # stratified: seeds are resampled within each task, so the mean's CI stays inside what 3 draws per task allow
+    assert mean_ci[0] >= (0.1 + 0.3) / 2 - 1e-9 and mean_ci[1] <= (0.3 + 0.9) / 2 + 1e-9
+    assert "| sear | 3 seeds x 2 tasks | 10 |" in table
+    assert "| metaworld-hammer | success rate, as it is |" in table
+    md = (out / "g" / "report.md").read_text()
+    assert "6 of 8 jobs finished" in md and "stratified-bootstrap" in md and "rliable" in md
     assert (out / "g" / "report.png").exists()
-    assert "6 of 8 jobs finished" in (out / "g" / "report.md").read_text()
+
+
+def test_report_normalises_returns_by_the_tasks_max_or_min_max(tmp_path):
+    out = tmp_path / "sweeps"
+    specs = fake_finished_runs(out, {
+        "walker-walk": ("frame,return", lambda s: ["0,0", f"10,{100 * s}"]),           # dm_control: / 1000
+        "metaworld-hammer": ("frame,return", lambda s: [f"0,{-50 * s}", f"10,{500 * s}"])})  # min-max: -150..1500
+    table = sweep.report(str(out), "g", specs, None)
+    assert "| walker-walk | return / 1000 (dm_control's maximum: 1 per control step) |" in table
+    assert "| metaworld-hammer | min-max over this sweep: (return - -150) / (1500 - -150) |" in table
+    scores = [0.1, 0.2, 0.3, *((500 * s + 150) / 1650 for s in (1, 2, 3))]
+    point, _, mean, _ = aggregate_row(table, "sear")
+    assert point == pytest.approx(iqm(scores), abs=5e-4) and mean == pytest.approx(np.mean(scores), abs=5e-4)
+    assert sweep.dm_control_max({"max_episode_steps": 10, "action_repeat": 2}) == 20
+    assert sweep.dm_control_max({"max_episode_steps": 0, "action_repeat": 8}) == 1000

@@ -1,0 +1,250 @@
+"""Our runs against DrQ-v2's published learning curve: the "published curve" rung of EXPERIMENTS.md.
+
+    python benchmarks/published_curve.py --published ../drqv2 /work/curve-runs --out docs/published_curve.png
+    python benchmarks/published_curve.py --published drqv2-curves/ --task cartpole_balance runs/
+
+--published is a checkout of facebookresearch/drqv2 (read in place: curves/dmc_<task>.csv, and the
+commit from git), a folder holding dmc_<task>.csv (the commit from a 40-hex id in its README), or the
+CSV itself. The other arguments are run directories, folders of runs or globs (as plot.py takes them);
+runs on other tasks are left out. Prints the source commit; a table at --frames with each method's
+mean over its seeds and every seed (planned seeds without a run or an evaluation yet say so), and the
+published seeds' mean and min-max; the verdict of the rung's rule; each run's wall time. Writes the
+figure: each seed thin, each method's mean thick, the published mean with its min-max band.
+Errors are one line on stderr, exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import plot  # noqa: E402
+
+# The rung's verdict rule, stated before its runs finished (EXPERIMENTS.md, "published curve"): our
+# DrQ matches if, at 40k frames, at least 2 of its 3 seeds are >= 900 and none is below the lowest
+# published seed there.
+VERDICT_METHOD, VERDICT_FRAME, VERDICT_RETURN, VERDICT_SEEDS, VERDICT_AT_LEAST = "drq", 40_000, 900.0, 3, 2
+
+
+class CurveError(Exception):
+    """Bad input: one line on stderr, exit code 2."""
+
+
+def find_published(path: str, task: str) -> tuple[str, str]:
+    """(CSV path, source commit or 'unknown') of task's published curve under `path`."""
+    if os.path.isfile(path):
+        folder, candidates = os.path.dirname(os.path.abspath(path)), [path]
+    else:
+        folder = path
+        candidates = [os.path.join(path, "curves", f"dmc_{task}.csv"), os.path.join(path, f"dmc_{task}.csv")]
+    csv_path = next((c for c in candidates if os.path.isfile(c)), None)
+    if csv_path is None:
+        raise CurveError(f"--published {path}: no {' or '.join(candidates)} (a drqv2 checkout or a folder "
+                         f"of its curves/dmc_<task>.csv files)")
+    return csv_path, source_commit(folder)
+
+
+def source_commit(folder: str) -> str:
+    """The drqv2 commit the curves come from: git's HEAD in a checkout, else the 40-hex id a README
+    beside copied files names."""
+    try:
+        out = subprocess.run(["git", "-C", folder, "rev-parse", "HEAD"], capture_output=True, text=True)
+        if out.returncode == 0 and re.fullmatch(r"[0-9a-f]{40}", out.stdout.strip()):
+            return out.stdout.strip()
+    except OSError:  # no git on this machine
+        pass
+    for readme in sorted(glob.glob(os.path.join(folder, "README*"))):
+        with open(readme, errors="replace") as f:
+            found = re.search(r"\b[0-9a-f]{40}\b", f.read())
+        if found:
+            return found.group(0)
+    return "unknown"
+
+
+def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
+    """{method: {seed: run}} of the runs on `task`; each run as plot.load_run gives it, plus its
+    wall time at its last evaluation. Runs that have not evaluated yet are kept with no frames."""
+    ours = {}
+    for d in plot.find_runs(paths):
+        try:
+            run = plot.load_run(d)
+            run["wall_time"] = plot.load_run(d, "eval", "wall_time")["values"][-1]
+        except plot.NoLogYet:  # started, not evaluated yet: in the table all the same
+            with open(os.path.join(d, "config.json")) as f:
+                run = {"dir": d, "config": json.load(f), "frames": np.array([]), "values": np.array([]),
+                       "wall_time": None}
+        if plot.task_key(plot.env_of(run)) != task:
+            continue
+        method, seed = str(run["config"].get("method")), int(run["config"].get("seed", 0))
+        if seed in ours.get(method, {}):
+            raise CurveError(f"two runs of {method} seed {seed} on {task}: {ours[method][seed]['dir']} and {d}")
+        ours.setdefault(method, {})[seed] = run
+    if not ours:
+        raise CurveError(f"no runs on {task} in {' '.join(paths)}")
+    return ours
+
+
+def value_at(run: dict, frame: float) -> float | None:
+    hit = np.flatnonzero(run["frames"] == frame)
+    return float(run["values"][hit[0]]) if len(hit) else None
+
+
+def seed_cell(run: dict | None, frame: float) -> str:
+    if run is None:
+        return "not started"
+    value = value_at(run, frame)
+    if value is not None:
+        return f"{value:.1f}"
+    return "in progress" if run["config"].get("frames", 0) >= frame else "-"
+
+
+def mean_cell(runs: dict[int, dict], seeds: list[int], frame: float) -> str:
+    values = [v for v in (value_at(runs[s], frame) for s in seeds if s in runs) if v is not None]
+    if not values:
+        return ""
+    partial = "" if len(values) == len(seeds) else f" ({len(values)} of {len(seeds)} seeds)"
+    return f"{np.mean(values):.1f}{partial}"
+
+
+def published_cell(ref: dict, frame: float) -> str:
+    hit = np.flatnonzero(ref["frames"] == frame)
+    if not len(hit):
+        return "no point"
+    i = hit[0]
+    return f"{ref['mean'][i]:.1f} ({ref['min'][i]:.1f}-{ref['max'][i]:.1f})"
+
+
+def comparison_table(ours, ref, methods, seeds, frames) -> str:
+    head = ["frames"]
+    for m in methods:
+        head += [f"{m} mean"] + [f"{m} seed {s}" for s in seeds]
+    head.append(f"DrQ-v2 published, {ref['seeds']} seeds: mean (min-max)")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for frame in frames:
+        cells = [plot.short_frames(frame)]
+        for m in methods:
+            runs = ours.get(m, {})
+            cells += [mean_cell(runs, seeds, frame)] + [seed_cell(runs.get(s), frame) for s in seeds]
+        cells.append(published_cell(ref, frame))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def verdict(ours, ref) -> str:
+    """The rung's rule applied to what the runs have so far."""
+    runs = ours.get(VERDICT_METHOD, {})
+    at = {s: value_at(r, VERDICT_FRAME) for s, r in sorted(runs.items())}
+    at = {s: v for s, v in at.items() if v is not None}
+    hit = np.flatnonzero(ref["frames"] == VERDICT_FRAME)
+    if not len(hit):
+        return f"verdict: not applicable: the published curve has no point at {VERDICT_FRAME} frames"
+    lowest = float(ref["min"][hit[0]])
+    rule = (f"at least {VERDICT_AT_LEAST} of {VERDICT_SEEDS} {VERDICT_METHOD} seeds >= {VERDICT_RETURN:g} at "
+            f"{plot.short_frames(VERDICT_FRAME)} frames and none below the lowest published seed ({lowest:.1f})")
+    if len(at) < VERDICT_SEEDS:
+        return f"verdict: pending ({len(at)} of {VERDICT_SEEDS} seeds have evaluated at {VERDICT_FRAME}); rule: {rule}"
+    if len(at) > VERDICT_SEEDS:
+        return f"verdict: not applicable: the rule is stated for {VERDICT_SEEDS} seeds, {len(at)} have evaluated"
+    good = sum(v >= VERDICT_RETURN for v in at.values())
+    below = [s for s, v in at.items() if v < lowest]
+    values = ", ".join(f"seed {s} {v:.1f}" for s, v in at.items())
+    if good >= VERDICT_AT_LEAST and not below:
+        return f"verdict: MATCH ({values}); rule: {rule}"
+    return (f"verdict: NO MATCH ({values}: {good} >= {VERDICT_RETURN:g}, below the lowest published seed: "
+            f"{below or 'none'}): a defect to find before anything else; rule: {rule}")
+
+
+def wall_time_table(ours) -> str:
+    lines = ["| run | method | seed | last evaluation (frames) | wall time to it |", "|---|---|---|---|---|"]
+    for m, runs in sorted(ours.items()):
+        for s, r in sorted(runs.items()):
+            last = f"{r['frames'][-1]:.0f}" if len(r["frames"]) else "none yet"
+            wall = "" if r["wall_time"] is None else f"{r['wall_time'] / 3600:.2f} h"
+            lines.append(f"| {r['dir']} | {m} | {s} | {last} | {wall} |")
+    return "\n".join(lines)
+
+
+def figure(ours, ref, methods, out: str, task: str, commit: str):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    budget = max(r["config"].get("frames", 0) for runs in ours.values() for r in runs.values())
+    for i, m in enumerate(methods):
+        runs = [r for _, r in sorted(ours.get(m, {}).items()) if len(r["frames"])]
+        for r in runs:
+            ax.plot(r["frames"], r["values"], color=f"C{i}", lw=0.8, alpha=0.4)
+        if runs:
+            frames, mean, _ = plot.aggregate([(r["frames"], r["values"]) for r in runs])
+            ax.plot(frames, mean, color=f"C{i}", lw=2, marker="o", ms=3,
+                    label=f"{m}, ours (n={len(runs)}: mean, seeds thin)")
+    plot.draw_reference(ax, ref)
+    ax.axhline(VERDICT_RETURN, color="0.5", ls="--", lw=0.8, label=f"verdict: {VERDICT_RETURN:g} at "
+               f"{plot.short_frames(VERDICT_FRAME)} frames")
+    ax.set_xlim(0, max(budget, VERDICT_FRAME) * 1.02)
+    ax.set_ylim(0, 1050)
+    ax.xaxis.set_major_formatter(FuncFormatter(plot.short_frames))
+    ax.set_xlabel("frames")
+    ax.set_ylabel("eval return (10 episodes)")
+    ax.set_title(f"{task}: ours vs DrQ-v2's published curve\n(facebookresearch/drqv2 {commit[:12]}, "
+                 f"curves/dmc_{task}.csv)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="run directories, folders of runs, or globs")
+    p.add_argument("--published", required=True, metavar="PATH",
+                   help="a drqv2 checkout, a folder of its dmc_<task>.csv files, or one such CSV")
+    p.add_argument("--task", default="cartpole_balance_sparse",
+                   help="DrQ-v2's task name (our env cartpole-balance_sparse)")
+    p.add_argument("--methods", nargs="+", default=["drq", "sear"], help="methods of the table, in its order")
+    p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3], help="planned seeds of each method")
+    p.add_argument("--frames", nargs="+", type=float, default=[0, 10_000, 20_000, 30_000, 40_000, 60_000],
+                   help="table rows; those beyond every run's budget are left out")
+    p.add_argument("--out", default="published_curve.png", help="PNG to write")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    args = p.parse_args(argv)
+    task = plot.task_key(args.task)
+    try:
+        if os.path.exists(args.out) and not args.force:
+            raise CurveError(f"{args.out} exists; refusing to overwrite it (use --force)")
+        csv_path, commit = find_published(args.published, task)
+        curves = plot.load_reference(csv_path, "DrQ-v2, published")
+        if task not in curves:
+            raise CurveError(f"{csv_path} has no curve of {task} (has {', '.join(sorted(curves))})")
+        ref = curves[task]
+        ours = load_ours(args.runs, task)
+        budget = max(r["config"].get("frames", 0) for runs in ours.values() for r in runs.values())
+        frames = [f for f in args.frames if f <= budget]
+        figure(ours, ref, args.methods, args.out, task, commit)
+    except (CurveError, plot.PlotError) as e:
+        print(f"published_curve.py: error: {e}", file=sys.stderr)
+        return 2
+    print(f"published: {csv_path}, facebookresearch/drqv2 commit {commit}\n")
+    print(comparison_table(ours, ref, args.methods, args.seeds, frames))
+    spacing = np.unique(np.diff(ref["frames"]))
+    if len(spacing) == 1:
+        print(f"\n(the published curve has a point every {spacing[0]:.0f} frames: 'no point' in between)")
+    print(f"\n{verdict(ours, ref)}\n")
+    print(wall_time_table(ours))
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""benchmarks/published_curve.py: our runs against a published curve, table and verdict, on fake runs."""
+import importlib.util
+import os
+
+import pytest
+
+from tests.test_plot import PNG_MAGIC, make_run, published_rows, write_published
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_spec = importlib.util.spec_from_file_location("published_curve",
+                                               os.path.join(ROOT, "benchmarks", "published_curve.py"))
+published_curve = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(published_curve)
+
+COMMIT = "c0c650b76c6e5d22a7eb5f2edffd1440fe94f8ef"
+FRAMES = (0, 10000, 20000, 30000, 40000)
+
+
+@pytest.fixture
+def published(tmp_path):
+    """A folder of copied curves with a README naming the commit (published 40k: 1000, 900, 950)."""
+    d = tmp_path / "drqv2-curves"
+    d.mkdir()
+    write_published(d / "dmc_cartpole_balance_sparse.csv", published_rows())
+    (d / "README").write_text(f"Copied from facebookresearch/drqv2 curves/ at commit {COMMIT}.\n")
+    return d
+
+
+def run_main(capsys, *argv):
+    code = published_curve.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def table_row(out, frames):
+    return next(line for line in out.splitlines() if line.startswith(f"| {frames} |")).split(" | ")
+
+
+@pytest.mark.parametrize("base, verdict", [(860.0, "verdict: MATCH"), (840.0, "verdict: NO MATCH")])
+def test_table_and_verdict(tmp_path, published, capsys, base, verdict):
+    """make_run's return is base + 10 * seed + frame / 1000: at 40k, base 860 gives 910/920/930 (all
+    >= 900 and >= the lowest published seed, 900); base 840 gives 890/900/910 (2 of 3 >= 900, but 890
+    is below the lowest published seed)."""
+    runs = tmp_path / "runs"
+    for seed in (1, 2, 3):
+        make_run(runs, "cartpole-balance_sparse", "drq", seed, frames=FRAMES, base=base)
+    make_run(runs, "walker-stand", "drq", 1, frames=FRAMES)  # another task: left out
+    out_png = tmp_path / "fig.png"
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", out_png)
+    assert code == 0, err
+    assert f"commit {COMMIT}" in out
+    row = table_row(out, "40k")
+    assert row[1:5] == [f"{base + 60:.1f}", f"{base + 50:.1f}", f"{base + 60:.1f}", f"{base + 70:.1f}"]
+    assert row[5:9] == ["", "not started", "not started", "not started"]  # sear: no runs yet
+    assert row[9] == "950.0 (900.0-1000.0) |"
+    assert table_row(out, "10k")[-1] == "no point |"  # published every 20k frames
+    assert f"\n{verdict} (" in out
+    assert out_png.read_bytes().startswith(PNG_MAGIC)
+
+
+def test_runs_in_progress_and_a_pending_verdict(tmp_path, published, capsys):
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES)
+    d = make_run(runs, "cartpole-balance_sparse", "drq", 2, frames=(0, 10000))
+    (d / "config.json").write_text('{"env": "cartpole-balance_sparse", "method": "drq", "seed": 2, "frames": 40000}')
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png")
+    assert code == 0, err
+    assert table_row(out, "20k")[1:5] == ["30.0 (1 of 3 seeds)", "30.0", "in progress", "not started"]
+    assert "verdict: pending (1 of 3 seeds have evaluated at 40000)" in out
+
+
+def test_commit_from_a_git_checkout(tmp_path, capsys):
+    import subprocess
+    repo = tmp_path / "drqv2"
+    (repo / "curves").mkdir(parents=True)
+    write_published(repo / "curves" / "dmc_cartpole_balance_sparse.csv", published_rows())
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "curves"], check=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    assert published_curve.find_published(str(repo), "cartpole_balance_sparse")[1] == head
+
+
+@pytest.mark.parametrize("breakage", ["no csv", "out exists", "no runs of the task"])
+def test_bad_input_is_one_line_exit_2(tmp_path, published, capsys, breakage):
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse" if breakage != "no runs of the task" else "walker-stand", "drq", 1)
+    out_png = tmp_path / "fig.png"
+    argv = [runs, "--published", published, "--out", out_png]
+    if breakage == "no csv":
+        argv[2] = tmp_path
+    elif breakage == "out exists":
+        out_png.write_bytes(b"precious")
+    code, _, err = run_main(capsys, *argv)
+    assert code == 2 and err.count("\n") == 1 and err.startswith("published_curve.py: error:"), err
+    assert (breakage == "out exists") == out_png.exists()
+    if breakage == "out exists":
+        assert out_png.read_bytes() == b"precious"
