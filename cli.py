@@ -1,7 +1,8 @@
 """sear.py's command line: the run settings (RunConfig), flags generated from the dataclasses (the
 algorithm's Config is in sear.py, passed in), the paper and authors recipes, the checks that turn bad
-input into one line on stderr, the saved config of --resume and --init-from, and the process set-up
-(torch device and threads, glibc's malloc tunables).
+input into one line on stderr (misspelled flags, run directories given as inputs and who owns one,
+--evaluate's flags) and the start-up warnings, the saved config of --resume, --evaluate and
+--init-from, and the process set-up (torch device and threads, glibc's malloc tunables, SIGTERM).
 
 Loads no numpy or torch at import: `python sear.py` restarts itself with the malloc tunables
 (reexec_with_huge_pages) before those load, so the restart costs a bare interpreter.
@@ -9,15 +10,23 @@ Loads no numpy or torch at import: `python sear.py` restarts itself with the mal
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import difflib
+import json
 import os
+import signal
+import socket
 import sys
+import threading
+import time
 from dataclasses import dataclass, field
 
 
-def arg(default, doc, choices=None):
-    """A config field with its one-line doc (--help) and, for a fixed set of values, the choices."""
-    return field(default=default, metadata={"doc": doc, "choices": choices})
+def arg(default, doc, choices=None, saved=True):
+    """A config field with its one-line doc (--help) and, for a fixed set of values, the choices.
+    saved=False: a setting of this command only, never written to config.json or a snapshot."""
+    return field(default=default, metadata={"doc": doc, "choices": choices, "saved": saved})
 
 
 # Transfer (--init-from): which networks of another run's agent a new run starts from.
@@ -28,7 +37,8 @@ INIT_PARTS = {"encoder": ("encoder",), "encoder+decoders": ("encoder", "aux"),
 @dataclass
 class RunConfig:
     """How this process runs the experiment (sear.Config says what the experiment is): devices, files,
-    logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt."""
+    logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt, all but the
+    fields marked saved=False (--evaluate: a command, not a setting of the run)."""
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
     prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
                                 "background thread while the current update runs", ("auto", "on", "off"))
@@ -36,6 +46,9 @@ class RunConfig:
                           "Several runs on one machine: give each cores / runs")
     run_root: str = arg("runs", "folder that holds run directories")
     resume: str = arg("", "run directory to continue from its last snapshot")
+    evaluate: str = arg("", "score this run directory's snapshot on its eval env, no training: mean return (and "
+                            "success) over --eval-episodes with confidence intervals; writes nothing, but with "
+                            "--save-video a new videos/evaluate_<frame>.mp4", saved=False)
     recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code "
                                "where the two differ: RECIPES below, README's table); explicit flags win",
                       ("paper", "authors"))
@@ -57,8 +70,20 @@ class ConfigError(ValueError):
     """Bad user input: reported as one line on stderr."""
 
 
+class StorageError(Exception):
+    """An OSError while writing into a run directory, as one line naming the file and the cause."""
+
+
 class Interrupted(Exception):
-    """Ctrl-C during training; the message says what was saved and how to continue."""
+    """Ctrl-C or SIGTERM during training; the message says what was saved and how to continue."""
+
+    def __init__(self, message, code=130):
+        super().__init__(message)
+        self.code = code
+
+
+def warn(message):
+    print(f"sear.py: warning: {message}", file=sys.stderr, flush=True)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -182,6 +207,18 @@ def flag_names(Config) -> set[str]:
     return names
 
 
+def no_such_flag(name, known: set[str]) -> str:
+    """'no flag --frams; did you mean --frames?' (sweep.py says it of the flags it passes on)."""
+    close = difflib.get_close_matches(name, sorted(known), n=1)
+    return f"no flag {name}" + (f"; did you mean {close[0]}?" if close else "")
+
+
+def unknown_arguments(extras: list[str], known: set[str]) -> str:
+    """The parser's error for what it did not recognise: the first unknown flag, with a suggestion."""
+    flags = [token.split("=", 1)[0] for token in extras if token.startswith("--")]
+    return no_such_flag(flags[0], known) if flags else f"unrecognized arguments: {' '.join(extras)}"
+
+
 # The range of each numeric flag; the parser checks the types, `choices` the enums.
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
@@ -223,8 +260,9 @@ def validate(cfg, run: RunConfig, methods: dict) -> None:
 # Saved configs: config.json, --resume, --init-from
 # ------------------------------------------------------------------------------------------------
 def config_dict(cfg, run: RunConfig) -> dict:
-    """config.json and a snapshot's "config": every field of both, flat, as one --flag each."""
-    return {**dataclasses.asdict(cfg), **dataclasses.asdict(run)}
+    """config.json and a snapshot's "config": every saved field of both, flat, as one --flag each."""
+    unsaved = {f.name for f in dataclasses.fields(RunConfig) if not f.metadata["saved"]}
+    return {**dataclasses.asdict(cfg), **{k: v for k, v in dataclasses.asdict(run).items() if k not in unsaved}}
 
 
 def split_config(values: dict, Config) -> tuple:
@@ -254,10 +292,12 @@ def load_snapshot(run_dir, flag="--resume", mmap=False):
     tensors instead of reading them (--init-from reads a snapshot twice: its config, then its weights)."""
     import torch
     path = os.path.join(run_dir, "snapshot.pt")
+    check_run_dir(run_dir, flag)
     flag = f"{flag}: " if flag else ""
-    if not os.path.isdir(run_dir):
-        raise ConfigError(f"{flag}no such run directory '{run_dir}'")
     if not os.path.exists(path):
+        owner = lock_owner(run_dir)
+        if owner:
+            raise ConfigError(f"{flag}'{run_dir}' is in use by {owner}, which has not written its first snapshot yet")
         raise ConfigError(f"{flag}'{run_dir}' has no snapshot.pt (the run stopped before its first "
                           f"snapshot; see --snapshot-minutes)")
     try:
@@ -265,6 +305,105 @@ def load_snapshot(run_dir, flag="--resume", mmap=False):
     except Exception as e:  # corrupt or foreign file: say so in one line
         reason = first_sentence(e)
         raise ConfigError(f"{flag}cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+
+
+# ------------------------------------------------------------------------------------------------
+# Run directories as inputs: --run-root, the RUN_DIR of --resume / --evaluate / --init-from, its owner
+# ------------------------------------------------------------------------------------------------
+def parents(path):
+    """The folders above path, nearest first, as given (relative stays relative)."""
+    while os.path.dirname(path) not in ("", path):
+        path = os.path.dirname(path)
+        yield path
+
+
+def check_run_root(run_root):
+    """Before a new run directory is made: --run-root must be a folder this process can write, or
+    one it can create (the nearest existing parent is then checked)."""
+    existing = next(p for p in (run_root, *parents(run_root), ".") if os.path.lexists(p))
+    if not os.path.isdir(existing):
+        raise ConfigError(f"--run-root: '{run_root}' is a file, not a folder" if existing == run_root else
+                          f"--run-root: cannot make '{run_root}': '{existing}' is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        read_only = os.statvfs(existing).f_flag & getattr(os, "ST_RDONLY", 0)
+        raise ConfigError(f"--run-root: cannot write in '{existing}': "
+                          + ("read-only file system" if read_only else "permission denied"))
+
+
+def check_run_dir(run_dir, flag="--resume"):
+    """A folder sear.py made (config.json or snapshot.pt in it), not a file, a typo or the folder of runs."""
+    flag = f"{flag}: " if flag else ""
+    if not os.path.exists(run_dir):
+        raise ConfigError(f"{flag}no such run directory '{run_dir}'")
+    if not os.path.isdir(run_dir):
+        raise ConfigError(f"{flag}'{run_dir}' is a file, not a run directory")
+    if not any(os.path.exists(os.path.join(run_dir, name)) for name in ("config.json", "snapshot.pt")):
+        runs = []
+        with contextlib.suppress(OSError):
+            runs = sorted(d for d in os.listdir(run_dir) if os.path.isfile(os.path.join(run_dir, d, "config.json")))
+        hint = (f"; it holds {len(runs)} run director{'y' if len(runs) == 1 else 'ies'}, e.g. "
+                f"{os.path.join(run_dir, runs[0])}") if runs else ""
+        raise ConfigError(f"{flag}'{run_dir}' is not a run directory (no config.json or snapshot.pt in it){hint}")
+
+
+def check_run_config(run_dir):
+    """--resume: config.json must be the JSON object the run wrote (plot.py and sweep.py read it). A
+    broken one is not replaced silently: moved aside by the user, the resumed run writes it again
+    from the snapshot's copy (experiment.RunDir)."""
+    path = os.path.join(run_dir, "config.json")
+    if not os.path.lexists(path):
+        return
+    try:
+        with open(path) as f:
+            ok = isinstance(json.load(f), dict)
+        reason = "not a JSON object"
+    except (OSError, ValueError) as e:  # ValueError: JSONDecodeError, UnicodeDecodeError
+        ok, reason = False, f"{type(e).__name__}: {first_sentence(getattr(e, 'strerror', None) or e).rstrip('.')}"
+    if not ok:
+        raise ConfigError(f"--resume: cannot read '{path}' ({reason}); snapshot.pt holds the run's config: move "
+                          f"config.json aside and resume again to have it written from there")
+
+
+# The owner's lock (experiment.RunLock takes it): an flock on this file, which holds "pid host".
+LOCK_FILE = "run.lock"
+
+
+def lock_holder(fd) -> str:
+    """'sear.py process PID [on HOST]', as the owner wrote it into the lock file. The owner writes it
+    right after taking the lock: a file still empty, or naming a dead process of this host (the
+    previous owner's), is read again for up to 2 s."""
+    for _ in range(40):
+        pid, _, host = os.pread(fd, 256, 0).decode(errors="replace").strip().partition(" ")
+        if pid.isdigit() and (host != socket.gethostname() or pid_alive(int(pid))):
+            return f"sear.py process {pid}" + (f" on {host}" if host != socket.gethostname() else "")
+        time.sleep(0.05)
+    return "another sear.py process (pid unknown)"
+
+
+def lock_owner(run_dir) -> str | None:
+    """Who holds RUN_DIR's lock now (see lock_holder), or None; takes nothing and creates nothing."""
+    try:
+        import fcntl
+        fd = os.open(os.path.join(run_dir, LOCK_FILE), os.O_RDONLY)
+    except (ImportError, OSError):
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return None
+    except OSError:
+        return lock_holder(fd)
+    finally:
+        os.close(fd)  # also drops the shared lock, if it was taken
+
+
+def pid_alive(pid) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
 
 
 def init_fields(cfg, init_parts: str) -> tuple[str, ...]:
@@ -305,14 +444,39 @@ def inherit_from_source(cfg, run: RunConfig, explicit: set, Config) -> set:
 
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
                      "save_video"}
+# --evaluate scores the run as it is: only how many episodes, whether to film, and where to compute.
+EVALUATE_MAY_SET = {"evaluate", "eval_episodes", "eval_episodes_per_task", "save_video", "device", "threads"}
+
+
+def evaluate_config(given: dict, Config, methods: dict) -> tuple:
+    """--evaluate RUN_DIR: the run's saved config with the few flags EVALUATE_MAY_SET on top (the run's
+    own --save-video does not carry over), and its snapshot."""
+    if given.get("resume"):
+        raise ConfigError("--evaluate scores a run, --resume trains it further: give one of them")
+    snapshot = load_snapshot(given["evaluate"], "--evaluate")
+    extra = sorted(set(given) - EVALUATE_MAY_SET)
+    if extra:
+        may = ", ".join(flag(name) for name in sorted(EVALUATE_MAY_SET - {"evaluate"}))
+        raise ConfigError(f"{flag(extra[0])} cannot be given with --evaluate (the run's config holds it); "
+                          f"only {may} can")
+    cfg, run = split_config({**snapshot["config"], "save_video": False, **given}, Config)
+    validate(cfg, run, methods)
+    return cfg, run, snapshot
 
 
 def parse_args(argv, Config, methods: dict) -> tuple:
-    """(Config, RunConfig, snapshot) from the flags; with --resume, the run's saved config (plus the
-    few flags that may change) and its snapshot, else snapshot None."""
-    given = vars(build_parser(Config, methods).parse_args(argv))
+    """(Config, RunConfig, snapshot) from the flags; with --resume or --evaluate, the run's saved
+    config (plus the few flags that may change) and its snapshot, else snapshot None."""
+    parser = build_parser(Config, methods)
+    namespace, extras = parser.parse_known_args(argv)
+    if extras:
+        parser.error(unknown_arguments(extras, flag_names(Config)))
+    given = vars(namespace)
+    if given.get("evaluate"):
+        return evaluate_config(given, Config, methods)
     if given.get("resume"):
         snapshot = load_snapshot(given["resume"])
+        check_run_config(given["resume"])
         saved = snapshot["config"]
         for k, v in given.items():
             if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
@@ -323,6 +487,7 @@ def parse_args(argv, Config, methods: dict) -> tuple:
         return cfg, run, snapshot
     cfg, run = split_config(given, Config)
     validate(cfg, run, methods)
+    check_run_root(run.run_root)
     if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
         cfg.mask_source = "learned:" + os.path.abspath(cfg.mask_source[len("learned:"):])
     explicit = set(given)
@@ -336,21 +501,72 @@ def parse_args(argv, Config, methods: dict) -> tuple:
     return cfg, run, None
 
 
-def main(argv, Config, methods: dict, train) -> int:
-    """sear.py's exit: 0 done, 2 bad input (one line), 130 Ctrl-C (one line saying what was saved)."""
-    try:
-        cfg, run, snapshot = parse_args(argv, Config, methods)
-        train(cfg, run, snapshot)
-    except ConfigError as e:
-        print(f"sear.py: error: {e}", file=sys.stderr)
-        return 2
-    except Interrupted as e:
-        print(f"\nsear.py: {e}", file=sys.stderr)
-        return 130
-    except KeyboardInterrupt:  # while reading the flags or the snapshot: nothing started
-        print("\nsear.py: interrupted before training started; nothing was saved", file=sys.stderr)
-        return 130
+def main(argv, Config, methods: dict, train, evaluate) -> int:
+    """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 130 Ctrl-C and 143 SIGTERM
+    (one line saying what was saved). train(cfg, run, snapshot) trains; with --evaluate,
+    evaluate(cfg, run, snapshot) scores the snapshot."""
+    with TERM.installed():
+        try:
+            cfg, run, snapshot = parse_args(argv, Config, methods)
+            (evaluate if run.evaluate else train)(cfg, run, snapshot)
+        except (ConfigError, StorageError) as e:
+            print(f"sear.py: error: {e}", file=sys.stderr)
+            return 2
+        except Interrupted as e:
+            print(f"\nsear.py: {e}", file=sys.stderr)
+            return e.code
+        except KeyboardInterrupt as stop:  # while reading the flags or the snapshot: nothing started
+            cause, code = stop_cause(stop)
+            print(f"\nsear.py: {cause} before training started; nothing was saved", file=sys.stderr)
+            return code
     return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# SIGTERM: how SLURM, timeout, docker stop and systemd stop a process
+# ------------------------------------------------------------------------------------------------
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt: the same handlers stop the run."""
+
+
+class TermSignal:
+    """SIGTERM stops a run as Ctrl-C does, at the next safe point when the grace allows. While a run
+    trains (`defer`, set by experiment.RunDir), the first SIGTERM only asks it to stop there: before
+    the run directory is made, or at the next episode end, where a snapshot holds the exact state
+    (SLURM's --signal=TERM@SECONDS gives that grace before the time limit). Anywhere else (reading
+    flags, --evaluate), or a second time, it stops at once. Exit code 143 (128 + 15)."""
+
+    def __init__(self):
+        self.defer, self.pending = False, False
+
+    @contextlib.contextmanager
+    def installed(self):
+        """The handler for the time of a command (main), then the one before it again."""
+        if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+            yield
+            return
+        previous = signal.signal(signal.SIGTERM, self.handle)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+    def handle(self, signum, frame):
+        if self.defer and not self.pending:
+            self.pending = True
+            # os.write: print() here could re-enter a write the signal interrupted
+            os.write(2, b"\nsear.py: SIGTERM: stopping at the next safe point (an episode end, with a snapshot); "
+                        b"another SIGTERM stops at once\n")
+            return
+        raise Terminated
+
+
+TERM = TermSignal()
+
+
+def stop_cause(stop: KeyboardInterrupt) -> tuple[str, int]:
+    """What stopped the process, as the messages say it, and its exit code."""
+    return ("stopped by SIGTERM", 128 + signal.SIGTERM) if isinstance(stop, Terminated) else ("interrupted", 130)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -375,13 +591,37 @@ def reexec_with_huge_pages():
     os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
 
 
+def usable_cores():
+    """The cores this process may run on (taskset / cgroup affinity)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def default_threads():
-    """OMP_NUM_THREADS when set (sweep.py sets it per job), else every core this process may run on
-    (taskset / cgroup affinity). Several runs sharing cores should split them: with more busy
-    threads than cores, torch's threads wait on each other and an update gets ~2x slower, not 1x."""
+    """OMP_NUM_THREADS when set (sweep.py sets it per job), else every core this process may run on.
+    Several runs sharing cores should split them: with more busy threads than cores, torch's threads
+    wait on each other and an update gets ~2x slower, not 1x."""
     if os.environ.get("OMP_NUM_THREADS", "").isdigit() and int(os.environ["OMP_NUM_THREADS"]) > 0:
         return int(os.environ["OMP_NUM_THREADS"])
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return usable_cores()
+
+
+def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
+    """Settings that run, but not as meant: more threads than cores, a replay smaller than a batch or
+    than the seed phase (learning starts once the replay holds the seed frames' steps). After the
+    envs are made: the seed phase's steps need the suite's action repeat."""
+    warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
+    if threads > cores:
+        given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
+        warnings.append(f"{given} is more threads than the {cores} cores this process may use: torch's threads "
+                        f"then wait on each other and every update is slower; use at most {cores}")
+    if training and cfg.replay_size < cfg.batch_size:
+        warnings.append(f"--replay-size {cfg.replay_size} is smaller than --batch-size {cfg.batch_size}: every "
+                        f"batch holds the same transitions several times")
+    seed_steps = cfg.seed_frames // max(1, cfg.action_repeat)
+    if training and cfg.replay_size < seed_steps:
+        warnings.append(f"--replay-size {cfg.replay_size} is smaller than the {seed_steps} steps of --seed-frames "
+                        f"{cfg.seed_frames}: learning never starts")
+    return warnings
 
 
 def torch_setup(run: RunConfig):

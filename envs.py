@@ -75,8 +75,8 @@ from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
 __all__ = [
-    "EnvError", "env_names", "default_action_repeat", "is_task_set", "metaworld_set_tasks", "make_env", "SEAREnv",
-    "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
+    "EnvError", "env_names", "default_action_repeat", "robot_name", "is_task_set", "metaworld_set_tasks", "make_env",
+    "SEAREnv", "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
     "d4rl_reward", "exploration_std_steps",
 ]
 
@@ -266,6 +266,13 @@ def default_action_repeat(name: str) -> int:
     """2 for dm_control / Distracting Control / Meta-World, 1 for Kitchen / Adroit."""
     suite, _ = _parse_name(name)
     return 1 if suite in ("kitchen", "adroit") else 2
+
+
+def robot_name(name: str) -> str:
+    """The robot of an env: the dm_control domain (walker, ball_in_cup, ...), sawyer (Meta-World),
+    franka (Kitchen) or adroit-hand. Envs of one robot share its look, and so its masks."""
+    suite, args = _parse_name(name)
+    return {"metaworld": "sawyer", "kitchen": "franka", "adroit": "adroit-hand"}.get(suite) or args[0]
 
 
 # ----------------------------------------------------------------------------

@@ -1,20 +1,24 @@
 """What sear.py's training loop calls besides the algorithm: the envs a config describes, the run
 directory (config.json, train.csv / eval.csv and TensorBoard, snapshots with the replay buffer beside
-them, resume and its side files, what a Ctrl-C leaves), the progress line, the evaluation's decoder
-metrics and videos, the background sampler, and transfer (--init-from).
+them, resume and its side files, one owner at a time, atomic writes and storage errors in one line,
+what a Ctrl-C or SIGTERM leaves), the progress line, the evaluation's decoder metrics and videos,
+--evaluate's scores, the background sampler, and transfer (--init-from).
 
 Layering: imports cli.py, segment.py and (lazily) envs.py; never sear.py, whose agent, buffer and
 config it receives as arguments.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
+import errno
 import json
 import math
 import os
 import queue
 import random
+import socket
 import sys
 import threading
 import time
@@ -37,20 +41,42 @@ def load_mask_model(cfg):
     if cfg.mask_source == "sim":
         return None
     try:
-        return segment.load_model(cfg.mask_source[len("learned:"):])
+        model = segment.load_model(cfg.mask_source[len("learned:"):])
     except segment.SegmentError as e:
         raise cli.ConfigError(f"--mask-source: {e}") from None
+    message = other_robot_warning(cfg, model.meta)
+    if message:
+        cli.warn(message)
+    return model
 
 
-def make_envs(cfg, uses_mask: bool):
-    """The train and the eval env; sets cfg.action_repeat 0 to the suite's default. `uses_mask`: the
-    method trains on (or acts on) the robot mask. With a learned mask source, obs["mask"] is the
-    model's prediction on each frame (envs.make_env(mask_model=)): the train env never renders the
-    simulator's mask, the eval env renders it only for the learned_mask_iou metric (info["true_mask"],
-    which nothing stores or trains on)."""
+def other_robot_warning(cfg, meta: dict) -> str | None:
+    """A mask model knows the robot it was trained on: on another robot its masks are noise
+    (learned_mask_iou near 0). segment.py records the robot and env; models without the record
+    (older files, labels folders) are not checked."""
+    import envs
+    source = meta.get("source") if isinstance(meta.get("source"), dict) else {}
+    trained_env, robot = source.get("env"), meta.get("robot")
+    try:
+        robot = robot or (envs.robot_name(trained_env) if trained_env else None)
+        here = envs.robot_name(cfg.env)
+    except envs.EnvError:  # an unknown --env is reported, in one line, when its env is made
+        return None
+    if robot is None or robot == here:
+        return None
+    return (f"--mask-source: the mask model was trained on {trained_env or 'frames'} (robot: {robot}), but "
+            f"{cfg.env}'s robot is {here}: its masks will miss the robot (eval.csv learned_mask_iou shows how far)")
+
+
+def make_envs(cfg, uses_mask: bool, train=True):
+    """The train (None with train=False) and the eval env; sets cfg.action_repeat 0 to the suite's
+    default. `uses_mask`: the method trains on (or acts on) the robot mask. With a learned mask
+    source, obs["mask"] is the model's prediction on each frame (envs.make_env(mask_model=)): the
+    train env never renders the simulator's mask, the eval env renders it only for the
+    learned_mask_iou metric (info["true_mask"], which nothing stores or trains on)."""
     import envs  # imported here so that `--help` and config errors need no MuJoCo
     mask_model = load_mask_model(cfg)
-    train_env = make_run_env(cfg, "train", uses_mask and mask_model is None, mask_model)
+    train_env = make_run_env(cfg, "train", uses_mask and mask_model is None, mask_model) if train else None
     eval_env = make_run_env(cfg, "eval", uses_mask and (mask_model is None or cfg.learned_mask_iou), mask_model)
     cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
     if mask_model is not None and cfg.learned_mask_iou:
@@ -195,7 +221,8 @@ class EvalWatch:
             panels["reconstruction"] = decoded["recon"][:, -3:].float().clamp(-0.5, 0.5) + 0.5
             self.add("recon_psnr", psnr(panels["reconstruction"], panels["camera"])[scored])
         if any(filming):
-            self.film(panels, np.flatnonzero(filming))
+            with storing(self.video_path):
+                self.film(panels, np.flatnonzero(filming))
 
     def add(self, name, per_frame: torch.Tensor):  # only the frames to score: films are decoded whole
         self.values.setdefault(name, []).extend(per_frame.tolist())
@@ -223,7 +250,8 @@ class EvalWatch:
         (for the IoU, over the frames where robot or prediction is present)."""
         self.flush()
         if self.video is not None:
-            self.video.close()
+            with storing(self.video_path):
+                self.video.close()
             self.video = None
         scores = {}
         for name in self.METRICS:
@@ -255,6 +283,83 @@ def eval_columns(episodes) -> dict:
         row[f"return/{task}"] = float(np.mean([e.ret for e in mine]))
         row[f"success/{task}"] = float(np.mean([float(bool(e.success)) for e in mine]))
     return row
+
+
+# ================================================================================================
+# --evaluate: a snapshot scored on its eval env, nothing written but a new video
+# ================================================================================================
+def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate) -> None:
+    """--evaluate RUN_DIR: `agent` (the snapshot's, loaded) on the run's eval env for --eval-episodes
+    episodes by sear.evaluate, with the evaluations' own reset seeds (the run's episode count gives
+    eval.csv's row at the snapshot's frame again). Prints the mean return (and success) with 95% CIs
+    over the episodes, and the decoder metrics. Writes nothing into the run but, with --save-video, a
+    new videos/evaluate_<frame>[-k].mp4. Takes no lock: a running run can be scored."""
+    for message in cli.start_warnings(cfg, run, training=False):
+        cli.warn(message)
+    step = snapshot["counters"]["step"]
+    frame = step * cfg.action_repeat
+    video = claim_video(run.evaluate, frame) if run.save_video else None
+    n = len(eval_tasks(env, cfg))
+    print(f"evaluating {run.evaluate} (snapshot at frame {frame}) on {cfg.env}: {n} episode{'s' * (n != 1)}, "
+          f"device {agent.device}", flush=True)
+    watch = EvalWatch(agent, env, video)
+    try:
+        episodes = evaluate(agent, watch, cfg, step)
+        scores = watch.finish()
+        if isinstance(env, segment.LearnedMaskIoU):
+            scores["learned_mask_iou"] = env.pop()
+    except BaseException as e:
+        if video:  # our own new file, unfinished: never leave half a video in the run
+            with contextlib.suppress(OSError):
+                os.remove(video)
+        if isinstance(e, KeyboardInterrupt):
+            cause, code = cli.stop_cause(e)
+            raise cli.Interrupted(f"{cause} during the evaluation; nothing was written", code) from None
+        raise
+    finally:
+        env.close()
+    print("return " + mean_ci([e.ret for e in episodes]))
+    successes = [float(e.success) for e in episodes if e.success is not None]
+    if successes:
+        print("success " + rate_ci(successes))
+    for name, value in {**{k: v for k, v in eval_columns(episodes).items() if "/" in k}, **scores}.items():
+        print(f"  {name} {value:.3g}")  # task sets: return/<task>, success/<task>; the decoder metrics
+    if video:
+        print(f"video: {video}")
+
+
+def claim_video(run_dir, frame) -> str:
+    """A new RUN_DIR/videos/evaluate_<frame>[-k].mp4, created empty (ffmpeg then writes it): an
+    existing video is never overwritten, not even by a second --evaluate started the same moment."""
+    folder = os.path.join(run_dir, "videos")
+    with storing(folder):
+        os.makedirs(folder, exist_ok=True)
+    base = os.path.join(folder, f"evaluate_{frame}")
+
+    def create(path):  # O_EXCL: FileExistsError if the name is taken
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+
+    with storing(base + ".mp4"):
+        return claim_new_path(base, ".mp4", create)
+
+
+def mean_ci(values) -> str:
+    """'12.3 (95% CI 10.1 to 14.5, 10 episodes)': Student-t interval of the mean over episodes."""
+    from scipy import stats
+    n, mean = len(values), float(np.mean(values))
+    if n < 2:
+        return f"{mean:.1f} (1 episode: no interval; give --eval-episodes 2 or more)"
+    half = float(stats.t.ppf(0.975, n - 1)) * float(np.std(values, ddof=1)) / math.sqrt(n)
+    return f"{mean:.1f} (95% CI {mean - half:.1f} to {mean + half:.1f}, {n} episodes)"
+
+
+def rate_ci(values) -> str:
+    """'0.60 (95% CI 0.31 to 0.83, 10 episodes)': Wilson interval of a success rate (a t interval of
+    0/1 values would say [1, 1] after ten successes)."""
+    from scipy import stats
+    n, k = len(values), int(round(sum(values)))
+    ci = stats.binomtest(k, n).proportion_ci(0.95, method="wilson")
+    return f"{k / n:.2f} (95% CI {ci.low:.2f} to {ci.high:.2f}, {n} episodes)"
 
 
 # ================================================================================================
@@ -336,9 +441,8 @@ BUFFER_ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
 def save_buffer(buffer, path):
     """buffer.npz: the filled slots of the ring in physical order, and `t`."""
     n = len(buffer)
-    tmp = path + ".tmp.npz"
-    np.savez(tmp, t=buffer.t, **{name: getattr(buffer, name)[:n] for name in BUFFER_ARRAYS})
-    os.replace(tmp, path)
+    write_atomically(path, lambda f: np.savez(f, t=buffer.t, **{name: getattr(buffer, name)[:n]
+                                                                 for name in BUFFER_ARRAYS}))
 
 
 def load_buffer(buffer, path):
@@ -396,6 +500,121 @@ def copy_parts(agent, source: dict, parts: str) -> None:
 # ================================================================================================
 # The run directory
 # ================================================================================================
+# --- Storage errors: a full disk, a read-only or foreign folder is one line, never a traceback -----
+def storage_message(path, err: OSError) -> str:
+    """'cannot write PATH: No space left on device (ENOSPC)': the path being written and the system's
+    reason (strerror, not str(err): imageio's and torch's messages run on for lines)."""
+    if err.errno in (errno.EEXIST, errno.ENOTDIR):  # a file where a folder should be: say which
+        for where in (path, *cli.parents(path)):
+            if os.path.lexists(where) and not os.path.isdir(where):
+                return (f"cannot make the folder '{path}': a file of that name is in the way" if where == path
+                        else f"cannot write '{path}': '{where}' is a file, not a folder")
+    name = errno.errorcode.get(err.errno, "") if err.errno else ""
+    reason = err.strerror or cli.first_sentence(err) or type(err).__name__
+    return f"cannot write '{path}': {reason}" + (f" ({name})" if name else "")
+
+
+@contextlib.contextmanager
+def storing(path):
+    """Around every write into a run directory: an OSError becomes a StorageError naming `path`."""
+    try:
+        yield
+    except OSError as e:
+        raise cli.StorageError(storage_message(path, e)) from None
+
+
+class _WriteRecorder:
+    """A file for torch.save that keeps the OSError of a failed write: torch turns it into
+    'inline_container.cc ... unexpected pos', which names neither the file nor the cause."""
+
+    def __init__(self, f):
+        self.f, self.error = f, None
+
+    def write(self, data):
+        try:
+            return self.f.write(data)
+        except OSError as e:
+            self.error = e
+            raise
+
+    def flush(self):
+        self.f.flush()
+
+
+def torch_save(obj, f):
+    recorder = _WriteRecorder(f)
+    try:
+        torch.save(obj, recorder)
+    except RuntimeError:
+        if recorder.error is not None:
+            raise recorder.error from None
+        raise
+
+
+def write_atomically(path, write, mode="wb"):
+    """write(f) into PATH.tmp, then rename it onto PATH: a kill or a storage error mid-write leaves the
+    previous file whole and no .tmp behind; an OSError is a StorageError naming PATH."""
+    tmp = path + ".tmp"
+    try:
+        with storing(path):
+            with open(tmp, mode, **({} if "b" in mode else {"newline": ""})) as f:
+                write(f)
+            os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(OSError):  # after the rename there is nothing left to remove
+            os.remove(tmp)
+
+
+def claim_new_path(base, suffix, make) -> str:
+    """base + suffix, or base-1 + suffix, base-2 + suffix, ...: the first that `make` creates. make
+    raises FileExistsError for a taken name, so two processes never claim the same path."""
+    path, k = base + suffix, 1
+    while True:
+        try:
+            make(path)
+            return path
+        except FileExistsError:
+            path, k = f"{base}-{k}{suffix}", k + 1
+
+
+class RunLock:
+    """One owner per run directory: an exclusive flock on RUN_DIR/run.lock, taken by a new run and by
+    --resume before they write anything and held until the run ends. The kernel drops a flock when
+    its process dies, however it dies (kill -9, OOM, a lost node), so a leftover file never blocks;
+    the file holds the owner's pid and host, for the message of a process that is refused
+    (cli.lock_holder; cli.lock_owner asks without taking it)."""
+
+    def __init__(self, run_dir):
+        self.run_dir, self.path, self.fd = run_dir, os.path.join(run_dir, cli.LOCK_FILE), None
+        try:
+            import fcntl
+        except ImportError:  # not a POSIX system
+            cli.warn(f"cannot lock {run_dir} on this system: nothing stops a second process using it")
+            return
+        with storing(self.path):
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = cli.lock_holder(fd)
+            os.close(fd)
+            raise cli.ConfigError(f"'{run_dir}' is in use by {owner}: a run directory has one owner; wait for it "
+                                  f"to end, or stop it, then resume") from None
+        except OSError as e:  # a file system without flock (Lustre mounted without -o flock: ENOSYS)
+            os.close(fd)
+            cli.warn(f"cannot lock {self.path} ({e.strerror}): nothing stops a second process using this run")
+            return
+        self.fd = fd
+        with storing(self.path):
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+
+    def release(self):
+        if self.fd is not None:
+            os.close(self.fd)  # releases the lock
+            self.fd = None
+
+
 class CsvLog:
     """Rows appended to a CSV whose header is fixed by the first row."""
 
@@ -406,12 +625,13 @@ class CsvLog:
                 self.fields = next(csv.reader(f), None)
 
     def write(self, row: dict):
-        if self.fields is None:
-            self.fields = list(row)
-            with open(self.path, "w", newline="") as f:
-                csv.writer(f).writerow(self.fields)
-        with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
+        with storing(self.path):
+            if self.fields is None:
+                with open(self.path, "w", newline="") as f:
+                    csv.writer(f).writerow(list(row))
+                self.fields = list(row)
+            with open(self.path, "a", newline="") as f:
+                csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
 
 
 def set_aside_rows_after(path, frame):
@@ -430,25 +650,17 @@ def set_aside_rows_after(path, frame):
     if not later:
         return
     side = f"{path[:-4]}.after_snapshot_{time.strftime('%Y%m%d-%H%M%S')}.csv"
-    with open(side, "w", newline="") as f:
+    with storing(side), open(side, "w", newline="") as f:
         csv.writer(f).writerows([header, *later])
-    tmp = path + ".tmp"
-    with open(tmp, "w", newline="") as f:
-        csv.writer(f).writerows([header, *keep])
-    os.replace(tmp, path)
+    write_atomically(path, lambda f: csv.writer(f).writerows([header, *keep]), mode="w")
 
 
 def new_run_dir(root: str, name: str) -> str:
     """root/name__<time>, made now; never an existing directory (and so never an existing run's),
     even one another process made this second."""
     base = os.path.join(root, f"{name}__{time.strftime('%Y%m%d-%H%M%S')}")
-    path, k = base, 1
-    while True:
-        try:
-            os.makedirs(path)
-            return path
-        except FileExistsError:
-            path, k = f"{base}-{k}", k + 1
+    with storing(base):
+        return claim_new_path(base, "", os.makedirs)
 
 
 def rng_state():
@@ -465,11 +677,8 @@ def set_rng_state(state):
 
 
 def save_snapshot(run_dir, payload):
-    """Write snapshot.pt atomically: a crash mid-write leaves the previous snapshot intact."""
-    path = os.path.join(run_dir, "snapshot.pt")
-    tmp = path + ".tmp"
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    """Write snapshot.pt atomically: a crash or a full disk mid-write leaves the previous snapshot intact."""
+    write_atomically(os.path.join(run_dir, "snapshot.pt"), lambda f: torch_save(payload, f))
 
 
 def tensorboard_writer(run_dir):
@@ -480,12 +689,12 @@ def tensorboard_writer(run_dir):
         return None
 
 
-def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes):
-    """What is true after a Ctrl-C: whether a snapshot exists, at which frame, and the command that
-    continues from it."""
+def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, cause="interrupted"):
+    """What is true after a Ctrl-C (or SIGTERM: `cause`): whether a snapshot exists, at which frame,
+    and the command that continues from it."""
     if run_dir is None:
-        return "interrupted before the run directory was made; nothing was saved"
-    head = f"interrupted at frame {frame} ({where})"
+        return f"{cause} before the run directory was made; nothing was saved"
+    head = f"{cause} at frame {frame} ({where})"
     resume = f"continue with: python sear.py --resume {run_dir}"
     if snapshot_frame == frame:
         return f"{head}: snapshot.pt holds this frame; {resume}"
@@ -494,6 +703,8 @@ def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes):
                 f"frames after it will be re-run; {resume}")
     return (f"{head}: {run_dir} has no snapshot yet (the first is written at the first episode end after "
             f"{snapshot_minutes:g} minutes), so there is nothing to resume; start a new run")
+
+
 
 
 class Progress:
@@ -571,8 +782,10 @@ class Counters:
 class RunDir:
     """A run directory and everything written into it: config.json, train.csv, eval.csv (and
     TensorBoard events), snapshot.pt with buffer.npz beside it (--save-buffer), videos/; and what
-    goes to the screen: the progress line, and on Ctrl-C (as a `with` block) one line that says what
-    was saved. Nothing is created before create().
+    goes to the screen: the progress line, and on Ctrl-C or SIGTERM or a storage error (as a `with`
+    block) one line that says what was saved. Nothing is created before create(). It owns the
+    directory (RunLock) from before its first write to the end of the `with` block; a first SIGTERM
+    in the block waits for a safe point: create(), or safe_point() at an episode end.
 
     Snapshots are taken between episodes (when --snapshot-minutes have passed since the last), on a
     Ctrl-C there, and after the final evaluation. A snapshot holds the agent, the RNG states, the
@@ -585,6 +798,7 @@ class RunDir:
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
         self.counters = None  # the loop's, from start()
         self.metrics = {}  # the updates' metrics of the episode under way
+        self.lock = None
 
     @property
     def frame(self):
@@ -592,12 +806,33 @@ class RunDir:
 
     # --- the directory ---
     def create(self):
-        """A new run's directory (env__method__seed__time under --run-root) and its config.json; a
-        resumed run has both."""
+        """Once the envs are made (every input checked): the start-up warnings, then a new run's
+        directory (env__method__seed__time under --run-root), owned, and its config.json; a resumed
+        run has both."""
+        for message in cli.start_warnings(self.cfg, self.run):
+            cli.warn(message)
         if self.path is None:
+            self.safe_point()  # stopped while the envs were made: nothing to keep
             self.path = new_run_dir(self.run.run_root, f"{self.cfg.env}__{self.cfg.method}__{self.cfg.seed}")
-            with open(os.path.join(self.path, "config.json"), "w") as f:
-                json.dump(cli.config_dict(self.cfg, self.run), f, indent=2)
+            self.lock = RunLock(self.path)
+            self.write_config(cli.config_dict(self.cfg, self.run))
+
+    def own(self):
+        """--resume, before anything is written: a second process on this run stops here. A config.json
+        the user moved aside (cli.check_run_config) is written again from the snapshot's copy."""
+        self.lock = RunLock(self.path)
+        if not os.path.lexists(os.path.join(self.path, "config.json")):
+            self.write_config(self.resumed["config"])
+            print(f"resume: {os.path.join(self.path, 'config.json')} was missing; written again from snapshot.pt")
+
+    def write_config(self, config: dict):
+        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2), mode="w")
+
+    @staticmethod
+    def safe_point():
+        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops here."""
+        if cli.TERM.pending:
+            raise cli.Terminated
 
     def start(self, agent, buffer, sample_rng: np.random.Generator) -> Counters:
         """Say what runs, restore a resumed run (weights, RNGs, buffer, counters) and open the logs.
@@ -681,14 +916,44 @@ class RunDir:
         return self.path
 
     def __enter__(self):
+        if self.path is not None:
+            try:
+                self.own()
+            except cli.StorageError as e:
+                self.release()
+                raise self.what_stands(e) from None
+        cli.TERM.defer = True
         return self
 
+    def what_stands(self, error: cli.StorageError) -> cli.StorageError:
+        """A storage error's line, ended with what the run dir holds now and how to go on."""
+        if self.path is None:
+            return cli.StorageError(f"{error}; no run directory was made")
+        if self.snapshot_frame is None:
+            return cli.StorageError(f"{error}; {self.path} has no snapshot yet, so there is nothing to resume")
+        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: fix that, then "
+                                f"python sear.py --resume {self.path}")
+
+    def release(self):
+        cli.TERM.defer = cli.TERM.pending = False
+        if self.lock is not None:
+            self.lock.release()
+
     def __exit__(self, kind, error, traceback):
-        """Ctrl-C: a snapshot where the state is exactly resumable (between episodes; at the end of
-        the budget it is what the final snapshot holds anyway), then one line saying what is saved."""
+        try:
+            self.stopped(kind, error)
+        finally:
+            self.release()
+
+    def stopped(self, kind, error):
+        """Ctrl-C or SIGTERM: a snapshot where the state is exactly resumable (between episodes; at the
+        end of the budget it is what the final snapshot holds anyway), then one line saying what is
+        saved. A storage error: its line says what stands."""
+        if kind is not None and issubclass(kind, cli.StorageError):
+            raise self.what_stands(error) from None
         if kind is None or not issubclass(kind, KeyboardInterrupt):
-            return False
-        c, frame = self.counters, self.frame
+            return
+        c, frame, failed = self.counters, self.frame, ""
         where = ("starting" if c is None else "end of budget" if frame >= self.cfg.frames
                  else "mid-episode" if c.mid_episode else "between episodes")
         if where in ("between episodes", "end of budget") and self.snapshot_frame != frame:
@@ -696,8 +961,11 @@ class RunDir:
                 self.save()
             except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
                 pass
+            except cli.StorageError as e:
+                failed = f" (the snapshot of frame {frame} failed: {e})"
+        cause, code = cli.stop_cause(error)
         raise cli.Interrupted(interrupt_message(self.path, frame, where, self.snapshot_frame,
-                                                self.run.snapshot_minutes)) from None
+                                                self.run.snapshot_minutes, cause) + failed, code) from None
 
     # --- logs ---
     def log_update(self, metrics: dict):

@@ -18,6 +18,7 @@ recipes and checks, RunConfig, device and threads).
 
 Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
         python sear.py --resume runs/<run dir>
+        python sear.py --evaluate runs/<run dir> [--save-video]            # score its snapshot, no training
         python sear.py --env metaworld-mt10                                # multi-task, per-task evaluation
         python sear.py --env metaworld-hammer --init-from runs/<mt10 run>  # transfer
 """
@@ -783,7 +784,8 @@ def seed_everything(seed):
 def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
     """Train from scratch, or continue from `snapshot` (the last one of the run dir run.resume);
     returns the run directory. The experiment.RunDir writes config.json, the logs and the snapshots
-    (taken between episodes, where a resume continues exactly) and turns a Ctrl-C into one line."""
+    (taken between episodes, where a resume continues exactly) and turns a Ctrl-C, a SIGTERM or a
+    storage error into one line."""
     with experiment.RunDir(cfg, run, snapshot) as rundir:
         device = cli.torch_setup(run)
         train_env, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask)  # sets action_repeat 0
@@ -804,6 +806,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
         frame = c.step * cfg.action_repeat
         while frame < cfg.frames:
             if not c.mid_episode:
+                rundir.safe_point()  # a first SIGTERM stops the run here, between episodes (with a snapshot)
                 c.mid_episode = True
                 obs, info = train_env.reset(seed=experiment.episode_seed(cfg.seed, c.episode))
                 buffer.add_first(obs)
@@ -849,9 +852,19 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
         return rundir.path
 
 
+def evaluate_snapshot(cfg: Config, run: cli.RunConfig, snapshot: dict) -> None:
+    """--evaluate RUN_DIR: the snapshot's agent on the run's eval env, scored and printed (no training)."""
+    device = cli.torch_setup(run)
+    _, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask, train=False)
+    agent = Agent(cfg, eval_env.action_space.shape[0], device)
+    agent.load_state_dict(snapshot["agent"])
+    experiment.score_snapshot(cfg, run, snapshot, agent, eval_env, evaluate)
+
+
 def main(argv=None) -> int:
-    """`python sear.py --flag value ...`: 0 when done; bad input (2) and Ctrl-C (130) end in one line."""
-    return cli.main(argv, Config, METHODS, train)
+    """`python sear.py --flag value ...`: 0 when done; bad input (2), Ctrl-C (130) and SIGTERM (143) end
+    in one line."""
+    return cli.main(argv, Config, METHODS, train, evaluate_snapshot)
 
 
 if __name__ == "__main__":

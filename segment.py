@@ -16,7 +16,8 @@ The network is a 3-level U-Net (plain torch), trained with Adam on BCE + soft di
 shift augmentation of DrQ-v2 (the same shift for image and mask). IoU is reported on held-out
 frames of the training episodes, on frames of other episodes and, for Distracting Control, on
 frames with unseen backgrounds (the envs' "eval" split). The model file (.pt) holds the weights,
-the sizes needed to rebuild the network, and how it was trained.
+the sizes needed to rebuild the network, and how it was trained: from a suite, its env and robot
+(sear.py warns when the model is used on another robot).
 
     python segment.py train --env walker-walk-distracting --labels 100 --out masks/walker.pt
     python segment.py train --folder my_labels/ --out my.pt
@@ -30,8 +31,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import pickle
 import sys
 import time
+import warnings
+import zipfile
 from pathlib import Path
 
 import gymnasium as gym
@@ -118,14 +122,22 @@ def load_model(path: str) -> MaskModel:
     p = Path(path).expanduser()
     if not p.is_file():
         raise SegmentError(f"mask model {path!r} does not exist or is not a file")
+    not_model = f"mask model {path!r} is not a segment.py model file"
+    train = "train one with python segment.py train"
+    if not zipfile.is_zipfile(p):   # torch.save writes a zip archive
+        raise SegmentError(f"{not_model} (not a torch file, or one cut short); {train}")
     try:
-        payload = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as e:   # torch raises pickle / zip / runtime errors for a damaged file
-        reason = " ".join(str(e).split()[:12]) or type(e).__name__
-        raise SegmentError(f"mask model {path!r} is not readable ({reason})") from None
+        with warnings.catch_warnings():   # torch warns (on stderr) about the pickles it then refuses
+            warnings.simplefilter("ignore")
+            payload = torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:   # weights_only refuses objects: a model file holds none
+        raise SegmentError(f"{not_model} (a torch file holding more than tensors and numbers, such as a "
+                           f"sear.py snapshot); {train}") from None
+    except Exception:   # a damaged archive, or another program's zip (torch's own words name neither)
+        raise SegmentError(f"{not_model} (a zip archive torch cannot read: damaged, or not torch's); "
+                           f"{train}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise SegmentError(f"mask model {path!r} is not a segment.py model file (train one with "
-                           f"python segment.py train)")
+        raise SegmentError(f"{not_model}; {train}")
     try:
         net = UNet(payload["channels"])
         net.load_state_dict(payload["state_dict"])
@@ -416,6 +428,15 @@ def check_env_name(name: str) -> None:
         raise SegmentError(str(e)) from None
 
 
+def robot_record(args) -> dict:
+    """What the model was trained on, for sear.py's warning when it is used on another robot:
+    {"robot": ...} for a suite's frames; a labels folder's robot is not known."""
+    if not args.env:
+        return {}
+    import envs
+    return {"robot": envs.robot_name(args.env)}
+
+
 def run_train(args) -> None:
     if os.path.exists(args.out) and not args.force:
         raise SegmentError(f"{args.out} exists; refusing to overwrite it (use --force)")
@@ -445,7 +466,7 @@ def run_train(args) -> None:
           f"({torch.get_num_threads()} threads)", flush=True)
     model = train_model(images, masks, steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                         channels=args.channels, seed=args.seed, log_every=max(1, args.steps // 5),
-                        meta={"source": source, "size": int(images.shape[-1])})
+                        meta={"source": source, "size": int(images.shape[-1]), **robot_record(args)})
     scores = {"train": iou(predict(model, images), masks)}
     scores.update({name: iou(predict(model, x), y) for name, (x, y) in tests.items()})
     model.meta["iou"] = {k: round(v, 4) for k, v in scores.items()}

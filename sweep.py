@@ -32,7 +32,6 @@ import argparse
 import contextlib
 import csv
 import dataclasses
-import difflib
 import fcntl
 import hashlib
 import io
@@ -152,7 +151,8 @@ class JobSpec:
 SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 # sear.py flags that sweep.py sets itself, and what to use instead.
 RESERVED = {"--env": "--envs", "--method": "--methods", "--seed": "--seeds", "--run-root": "--out",
-            "--resume": "re-running the sweep, which resumes interrupted runs"}
+            "--resume": "re-running the sweep, which resumes interrupted runs",
+            "--evaluate": "python sear.py --evaluate on a run directory of the sweep"}
 # Config fields that do not change the experiment, so they do not change the job's key.
 UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "threads", "log_every", "save_buffer"}
 
@@ -196,8 +196,8 @@ def check_passthrough(tokens: list[str]) -> None:
         if name in RESERVED:
             raise SweepError(f"{name} is set by sweep.py; use {RESERVED[name]}")
         if name not in known:
-            close = difflib.get_close_matches(name, sorted(known), n=1)
-            raise SweepError(f"sear.py has no flag {name}" + (f"; did you mean {close[0]}?" if close else ""))
+            import cli
+            raise SweepError(f"sear.py has {cli.no_such_flag(name, known)}")
 
 
 def sear_config(argv: list[str], what: str):

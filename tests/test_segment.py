@@ -191,7 +191,8 @@ def test_a_learned_run_never_trains_on_a_rendered_mask(tmp_path, capsys, monkeyp
     assert code == 2 and "--mask-source cannot change on --resume" in out.err
 
 
-@pytest.mark.parametrize("content, message", [(None, "does not exist"), (b"garbage", "is not readable"),
+@pytest.mark.parametrize("content, message", [(None, "does not exist"),
+                                              (b"garbage", "is not a segment.py model file (not a torch file"),
                                               ("dict", "not a segment.py model file")])
 def test_missing_or_corrupt_model_is_one_line_before_any_run_dir(tmp_path, capsys, content, message):
     path = tmp_path / "m.pt"
