@@ -262,11 +262,15 @@ def test_init_from_refuses_mismatches_and_creates_nothing(mt3_run, tmp_path, cap
     assert not (tmp_path / "runs").exists()
 
 
-def test_init_from_a_run_without_snapshot(tmp_path, capsys):
-    (tmp_path / "empty_run").mkdir()
-    code = sear.main(["--run-root", str(tmp_path / "runs"), "--init-from", str(tmp_path / "empty_run")])
+@pytest.mark.parametrize("holds, says", [("config.json", "has no snapshot.pt"), (None, "is not a run directory")])
+def test_init_from_a_run_without_snapshot(tmp_path, capsys, holds, says):
+    """A run that stopped before its first snapshot (config.json only), and a folder that is no run."""
+    (tmp_path / "source").mkdir()
+    if holds:
+        (tmp_path / "source" / holds).write_text("{}")
+    code = sear.main(["--run-root", str(tmp_path / "runs"), "--init-from", str(tmp_path / "source")])
     err = capsys.readouterr().err
-    assert code == 2 and err.startswith("sear.py: error: --init-from:") and "has no snapshot.pt" in err
+    assert code == 2 and err.startswith("sear.py: error: --init-from:") and says in err, err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()
 
 
