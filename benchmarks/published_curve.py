@@ -2,6 +2,7 @@
 
     python benchmarks/published_curve.py --published ../drqv2 /work/curve-runs --out docs/published_curve.png
     python benchmarks/published_curve.py --published drqv2-curves/ --task cartpole_balance runs/
+    python benchmarks/published_curve.py --published ../drqv2 /work/curve-runs --official /work/curve-runs/official-*
 
 --published is a checkout of facebookresearch/drqv2 (read in place: curves/dmc_<task>.csv, and the
 commit from git), a folder holding dmc_<task>.csv (the commit from a 40-hex id in its README), or the
@@ -10,11 +11,15 @@ runs on other tasks are left out. Prints the source commit; a table at --frames 
 mean over its seeds and every seed (planned seeds without a run or an evaluation yet say so), and the
 published seeds' mean and min-max; the verdict of the rung's rule; each run's wall time. Writes the
 figure: each seed thin, each method's mean thick, the published mean with its min-max band.
+--official adds runs of the official code (facebookresearch/drqv2's train.py, run on this machine:
+hydra run dirs with .hydra/config.yaml and eval.csv) as one more method, the check of the machine
+itself when our DrQ does not match.
 Errors are one line on stderr, exit code 2.
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import glob
 import json
 import os
@@ -91,6 +96,45 @@ def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
     return ours
 
 
+OFFICIAL = "drqv2 official"
+
+
+def load_official(paths: list[str], task: str) -> dict[int, dict]:
+    """{seed: run} of the official code's hydra run dirs on `task`, in the shape load_ours gives:
+    seed, task and budget from .hydra/config.yaml, returns and wall time (total_time) from eval.csv."""
+    runs = {}
+    for pattern in paths:
+        dirs = sorted(glob.glob(pattern)) or [pattern]
+        for d in dirs:
+            config_path = os.path.join(d, ".hydra", "config.yaml")
+            try:
+                with open(config_path) as f:
+                    text = f.read()
+            except OSError as e:
+                raise CurveError(f"--official {d}: not a run of the official code ({config_path}: "
+                                 f"{e.strerror or e})") from None
+            fields = dict(re.findall(r"^(seed|task_name|num_train_frames): *(\S+)", text, re.MULTILINE))
+            if plot.task_key(fields.get("task_name", "")) != task:
+                continue
+            seed, frames, values, wall = int(fields.get("seed", 0)), [], [], None
+            eval_path = os.path.join(d, "eval.csv")
+            if os.path.exists(eval_path):
+                with open(eval_path, newline="") as f:
+                    for row in csv.DictReader(f):
+                        frames.append(float(row["frame"]))
+                        values.append(float(row["episode_reward"]))
+                        wall = float(row["total_time"])
+            order = np.argsort(frames, kind="stable")
+            if seed in runs:
+                raise CurveError(f"two official runs of seed {seed} on {task}: {runs[seed]['dir']} and {d}")
+            runs[seed] = {"dir": d, "config": {"method": OFFICIAL, "seed": seed,
+                                              "frames": float(fields.get("num_train_frames", 0))},
+                          "frames": np.array(frames)[order], "values": np.array(values)[order], "wall_time": wall}
+    if not runs:
+        raise CurveError(f"--official: no runs of the official code on {task} in {' '.join(paths)}")
+    return runs
+
+
 def value_at(run: dict, frame: float) -> float | None:
     hit = np.flatnonzero(run["frames"] == frame)
     return float(run["values"][hit[0]]) if len(hit) else None
@@ -122,16 +166,17 @@ def published_cell(ref: dict, frame: float) -> str:
 
 
 def comparison_table(ours, ref, methods, seeds, frames) -> str:
+    """seeds: {method: planned seeds}."""
     head = ["frames"]
     for m in methods:
-        head += [f"{m} mean"] + [f"{m} seed {s}" for s in seeds]
+        head += [f"{m} mean"] + [f"{m} seed {s}" for s in seeds[m]]
     head.append(f"DrQ-v2 published, {ref['seeds']} seeds: mean (min-max)")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for frame in frames:
         cells = [plot.short_frames(frame)]
         for m in methods:
             runs = ours.get(m, {})
-            cells += [mean_cell(runs, seeds, frame)] + [seed_cell(runs.get(s), frame) for s in seeds]
+            cells += [mean_cell(runs, seeds[m], frame)] + [seed_cell(runs.get(s), frame) for s in seeds[m]]
         cells.append(published_cell(ref, frame))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -185,8 +230,9 @@ def figure(ours, ref, methods, out: str, task: str, commit: str):
             ax.plot(r["frames"], r["values"], color=f"C{i}", lw=0.8, alpha=0.4)
         if runs:
             frames, mean, _ = plot.aggregate([(r["frames"], r["values"]) for r in runs])
+            who = "official code, this machine" if m == OFFICIAL else "ours"
             ax.plot(frames, mean, color=f"C{i}", lw=2, marker="o", ms=3,
-                    label=f"{m}, ours (n={len(runs)}: mean, seeds thin)")
+                    label=f"{m}, {who} (n={len(runs)}: mean, seeds thin)")
     plot.draw_reference(ax, ref)
     ax.axhline(VERDICT_RETURN, color="0.5", ls="--", lw=0.8, label=f"verdict: {VERDICT_RETURN:g} at "
                f"{plot.short_frames(VERDICT_FRAME)} frames")
@@ -216,6 +262,8 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3], help="planned seeds of each method")
     p.add_argument("--frames", nargs="+", type=float, default=[0, 10_000, 20_000, 30_000, 40_000, 60_000],
                    help="table rows; those beyond every run's budget are left out")
+    p.add_argument("--official", nargs="+", default=[], metavar="DIR",
+                   help="run dirs (or globs) of the official drqv2 train.py on this machine: one more method")
     p.add_argument("--out", default="published_curve.png", help="PNG to write")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = p.parse_args(argv)
@@ -229,14 +277,20 @@ def main(argv=None) -> int:
             raise CurveError(f"{csv_path} has no curve of {task} (has {', '.join(sorted(curves))})")
         ref = curves[task]
         ours = load_ours(args.runs, task)
+        seeds = {m: args.seeds for m in args.methods}
+        methods = list(args.methods)
+        if args.official:
+            ours[OFFICIAL] = load_official(args.official, task)
+            methods.append(OFFICIAL)
+            seeds[OFFICIAL] = sorted(ours[OFFICIAL])
         budget = max(r["config"].get("frames", 0) for runs in ours.values() for r in runs.values())
         frames = [f for f in args.frames if f <= budget]
-        figure(ours, ref, args.methods, args.out, task, commit)
+        figure(ours, ref, methods, args.out, task, commit)
     except (CurveError, plot.PlotError) as e:
         print(f"published_curve.py: error: {e}", file=sys.stderr)
         return 2
     print(f"published: {csv_path}, facebookresearch/drqv2 commit {commit}\n")
-    print(comparison_table(ours, ref, args.methods, args.seeds, frames))
+    print(comparison_table(ours, ref, methods, seeds, frames))
     spacing = np.unique(np.diff(ref["frames"]))
     if len(spacing) == 1:
         print(f"\n(the published curve has a point every {spacing[0]:.0f} frames: 'no point' in between)")

@@ -97,3 +97,41 @@ def test_bad_input_is_one_line_exit_2(tmp_path, published, capsys, breakage):
     assert (breakage == "out exists") == out_png.exists()
     if breakage == "out exists":
         assert out_png.read_bytes() == b"precious"
+
+
+def make_official_run(root, seed, frames=(0, 10000, 20000), task="cartpole_balance_sparse"):
+    """A run dir as the official drqv2 train.py (hydra) writes it: .hydra/config.yaml and an eval.csv
+    with its columns; return = 500 + seed + frame / 100."""
+    d = root / f"official-{seed}"
+    (d / ".hydra").mkdir(parents=True)
+    (d / ".hydra" / "config.yaml").write_text(f"frame_stack: 3\nseed: {seed}\ndevice: cpu\n"
+                                              f"task_name: {task}\nnum_train_frames: 40002\n")
+    rows = [f"{i},1000.0,{500 + seed + fr / 100},{fr},{fr // 2},{60.0 * (i + 1)}" for i, fr in enumerate(frames)]
+    (d / "eval.csv").write_text("episode,episode_length,episode_reward,frame,step,total_time\n"
+                                + "\n".join(rows) + "\n")
+    return d
+
+
+def test_official_runs_are_one_more_method(tmp_path, published, capsys):
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES)
+    make_official_run(runs, 1, frames=(20000, 0, 10000))  # rows out of order: sorted by frame
+    make_official_run(runs, 4, frames=(0,))
+    make_official_run(tmp_path / "other", 2, task="walker_stand")  # another task: left out
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png",
+                              "--official", runs / "official-*", tmp_path / "other" / "official-2")
+    assert code == 0, err
+    head = next(line for line in out.splitlines() if line.startswith("| frames |")).split(" | ")
+    assert head[-4:-1] == ["drqv2 official mean", "drqv2 official seed 1", "drqv2 official seed 4"]
+    assert table_row(out, "20k")[-4:-1] == ["701.0 (1 of 2 seeds)", "701.0", "in progress"]
+    assert table_row(out, "0")[-4:-1] == ["502.5", "501.0", "504.0"]
+    assert "| drqv2 official | 1 | 20000 | 0.05 h |" in out  # its wall time: total_time of the last row
+    assert "verdict: pending (1 of 3" in out  # the rule is about our DrQ, not the official code
+
+
+def test_official_dir_that_is_no_official_run_is_one_line(tmp_path, published, capsys):
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES)
+    code, _, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png",
+                            "--official", runs)
+    assert code == 2 and err.count("\n") == 1 and "not a run of the official code" in err, err
