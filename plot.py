@@ -280,7 +280,8 @@ def rate_axis(ax, ylabel: str) -> None:
 
 
 def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None,
-         references: dict | None = None):
+         references: dict | None = None, estimates: dict | None = None):
+    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's title)."""
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
@@ -305,7 +306,8 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
         ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
         ax.grid(alpha=0.3)
         rate_axis(ax, ylabel)
-        ax.legend(fontsize="small", title="mean ± 95% CI" + ("; dashed: fewer runs" if dashed else ""),
+        estimate = (estimates or {}).get(panel, "mean ± 95% CI")
+        ax.legend(fontsize="small", title=estimate + ("; dashed: fewer runs" if dashed else ""),
                   title_fontsize="small")
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)

@@ -862,7 +862,7 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     png = os.path.join(out, sweep, "report.png")
     plot.plot(panels, png, ylabel, f"{sweep}: {ylabel}; per task mean ± 95% CI over seeds, over tasks IQM "
-                                   f"(stratified bootstrap 95% CI)")
+                                   f"(stratified bootstrap 95% CI)", estimates={overall: "IQM, bootstrap 95% CI"})
     per_task = plot.summary_table({e: panels[e] for e in envs}, metric)
     norm_rows = ["| task | normalised score |", "|---|---|", *(f"| {e} | {how[e]} |" for e in envs)]
     tables = "\n\n".join([per_task, "\n".join(aggregate_rows), "\n".join(norm_rows)])

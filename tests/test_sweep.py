@@ -567,6 +567,28 @@ def test_report_success_rates_per_task_and_rliable_over_tasks(tmp_path):
     assert (out / "g" / "report.png").exists()
 
 
+def test_report_figure_says_what_each_panel_shows(tmp_path, monkeypatch):
+    """Per task a mean with its t-interval, over the tasks the IQM with its bootstrap CI: the legend of
+    each panel names its own estimate."""
+    import matplotlib.axes
+    titles = {}
+    real_legend = matplotlib.axes.Axes.legend
+
+    def legend(ax, *args, **kwargs):
+        titles[ax.get_title()] = kwargs.get("title")
+        return real_legend(ax, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "legend", legend)
+    out = tmp_path / "sweeps"
+    specs = fake_finished_runs(out, {
+        "metaworld-hammer": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.1 * s}"]),
+        "metaworld-door-open": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.3 * s}"])})
+    sweep.report(str(out), "g", specs, None)
+    assert titles["metaworld-hammer"] == titles["metaworld-door-open"] == "mean ± 95% CI"
+    overall = next(t for t in titles if t.startswith("over 2 tasks"))
+    assert titles[overall] == "IQM, bootstrap 95% CI"
+
+
 def test_report_normalises_returns_by_the_tasks_max_or_min_max(tmp_path):
     out = tmp_path / "sweeps"
     specs = fake_finished_runs(out, {
