@@ -18,7 +18,6 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
-from scipy import stats  # noqa: E402
 
 import experiment  # noqa: E402
 import sear  # noqa: E402
@@ -47,10 +46,8 @@ def main() -> None:
             done = terminated or truncated
         returns.append(ret)
     returns = np.array(returns)
-    half = stats.t.ppf(0.975, len(returns) - 1) * returns.std(ddof=1) / np.sqrt(len(returns))
-    print(f"{args.env} (action repeat {cfg.action_repeat}), random policy, {len(returns)} episodes: "
-          f"mean {returns.mean():.1f} +- {half:.1f} (95% CI), std {returns.std(ddof=1):.1f}, "
-          f"min {returns.min():.1f}, max {returns.max():.1f}")
+    print(f"{args.env} (action repeat {cfg.action_repeat}), random policy: mean {experiment.mean_ci(returns)}, "
+          f"std {returns.std(ddof=1):.1f}, min {returns.min():.1f}, max {returns.max():.1f}")
 
 
 if __name__ == "__main__":
