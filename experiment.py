@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
-import errno
 import json
 import math
 import os
@@ -29,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 import cli
+from cli import storing, torch_save, write_atomically
 import segment  # the learned mask source; it imports envs only when collecting frames
 
 
@@ -500,71 +500,6 @@ def copy_parts(agent, source: dict, parts: str) -> None:
 # ================================================================================================
 # The run directory
 # ================================================================================================
-# --- Storage errors: a full disk, a read-only or foreign folder is one line, never a traceback -----
-def storage_message(path, err: OSError) -> str:
-    """'cannot write PATH: No space left on device (ENOSPC)': the path being written and the system's
-    reason (strerror, not str(err): imageio's and torch's messages run on for lines)."""
-    if err.errno in (errno.EEXIST, errno.ENOTDIR):  # a file where a folder should be: say which
-        for where in (path, *cli.parents(path)):
-            if os.path.lexists(where) and not os.path.isdir(where):
-                return (f"cannot make the folder '{path}': a file of that name is in the way" if where == path
-                        else f"cannot write '{path}': '{where}' is a file, not a folder")
-    name = errno.errorcode.get(err.errno, "") if err.errno else ""
-    reason = err.strerror or cli.first_sentence(err) or type(err).__name__
-    return f"cannot write '{path}': {reason}" + (f" ({name})" if name else "")
-
-
-@contextlib.contextmanager
-def storing(path):
-    """Around every write into a run directory: an OSError becomes a StorageError naming `path`."""
-    try:
-        yield
-    except OSError as e:
-        raise cli.StorageError(storage_message(path, e)) from None
-
-
-class _WriteRecorder:
-    """A file for torch.save that keeps the OSError of a failed write: torch turns it into
-    'inline_container.cc ... unexpected pos', which names neither the file nor the cause."""
-
-    def __init__(self, f):
-        self.f, self.error = f, None
-
-    def write(self, data):
-        try:
-            return self.f.write(data)
-        except OSError as e:
-            self.error = e
-            raise
-
-    def flush(self):
-        self.f.flush()
-
-
-def torch_save(obj, f):
-    recorder = _WriteRecorder(f)
-    try:
-        torch.save(obj, recorder)
-    except RuntimeError:
-        if recorder.error is not None:
-            raise recorder.error from None
-        raise
-
-
-def write_atomically(path, write, mode="wb"):
-    """write(f) into PATH.tmp, then rename it onto PATH: a kill or a storage error mid-write leaves the
-    previous file whole and no .tmp behind; an OSError is a StorageError naming PATH."""
-    tmp = path + ".tmp"
-    try:
-        with storing(path):
-            with open(tmp, mode, **({} if "b" in mode else {"newline": ""})) as f:
-                write(f)
-            os.replace(tmp, path)
-    finally:
-        with contextlib.suppress(OSError):  # after the rename there is nothing left to remove
-            os.remove(tmp)
-
-
 def claim_new_path(base, suffix, make) -> str:
     """base + suffix, or base-1 + suffix, base-2 + suffix, ...: the first that `make` creates. make
     raises FileExistsError for a taken name, so two processes never claim the same path."""

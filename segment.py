@@ -45,6 +45,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from PIL import Image, UnidentifiedImageError
 
+import cli  # storage errors as one line (cli imports nothing of the project)
+
 FORMAT = "sear-mask-model"
 VERSION = 1
 
@@ -108,12 +110,13 @@ class MaskModel:
         return mask[0] if single else mask
 
     def save(self, path: str) -> None:
-        Path(path).expanduser().parent.mkdir(parents=True, exist_ok=True)
+        """Atomically; a storage error is a cli.StorageError naming the file, no .tmp left behind."""
+        path = str(Path(path).expanduser())
+        with cli.storing(path):
+            os.makedirs(os.path.dirname(path), exist_ok=True)
         payload = {"format": FORMAT, "version": VERSION, "channels": list(self.net.channels),
                    "state_dict": self.net.state_dict(), "meta": self.meta}
-        tmp = f"{path}.tmp"
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
+        cli.write_atomically(path, lambda f: cli.torch_save(payload, f))
 
 
 def load_model(path: str) -> MaskModel:
@@ -229,11 +232,14 @@ def write_folder(folder: str, images: np.ndarray, masks: np.ndarray, prefix: str
     root = Path(folder).expanduser()
     if root.exists() and any(root.glob("*.png")):
         raise SegmentError(f"{folder} already holds PNG files; refusing to overwrite (give a new folder)")
-    root.mkdir(parents=True, exist_ok=True)
+    with cli.storing(str(root)):
+        root.mkdir(parents=True, exist_ok=True)
     names = [f"{prefix}{i:05d}" for i in range(len(images))]
     for name, rgb, mask in zip(names, images, masks):
-        Image.fromarray(rgb.transpose(1, 2, 0)).save(root / f"{name}.png")
-        Image.fromarray(mask.astype(np.uint8) * 255).save(root / f"{name}{MASK_SUFFIX}.png")
+        for path, pixels in ((root / f"{name}.png", rgb.transpose(1, 2, 0)),
+                             (root / f"{name}{MASK_SUFFIX}.png", mask.astype(np.uint8) * 255)):
+            with cli.storing(str(path)):
+                Image.fromarray(pixels).save(path)
     return names
 
 
@@ -492,7 +498,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         run_train(args) if args.command == "train" else run_export(args)
-    except SegmentError as e:
+    except (SegmentError, cli.StorageError) as e:
         print(f"segment.py: error: {e}", file=sys.stderr)
         return 2
     return 0

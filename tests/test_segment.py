@@ -124,6 +124,28 @@ def test_bad_label_folders_are_one_line_exit_2(tmp_path, capsys, case, message):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("where", ["a file in the way", "file size limit"])
+def test_a_storage_error_writing_the_model_is_one_line_and_leaves_nothing(tmp_path, where):
+    """--out under a file (ENOTDIR), or a 4 kB RLIMIT_FSIZE the model file exceeds (EFBIG): one line
+    naming the path, exit 2, no model and no .tmp left."""
+    import resource
+    images, masks = shapes(6)
+    segment.write_folder(str(tmp_path / "labels"), images, masks)
+    (tmp_path / "afile").write_text("")
+    out = tmp_path / "afile" / "m.pt" if where == "a file in the way" else tmp_path / "models" / "m.pt"
+    limit = 4096
+    p = subprocess.run([sys.executable, str(ROOT / "segment.py"), "train", "--folder", str(tmp_path / "labels"),
+                        "--out", str(out), "--steps", "1", "--channels", "4,8"], capture_output=True, text=True,
+                       timeout=300, preexec_fn=None if where == "a file in the way" else
+                       lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    expected = (f"segment.py: error: cannot write '{out}': '{tmp_path / 'afile'}' is a file, not a folder"
+                if where == "a file in the way" else
+                f"segment.py: error: cannot write '{out}': File too large (EFBIG)")
+    assert p.stderr.strip() == expected
+    assert not out.exists() and not list(tmp_path.rglob("*.tmp"))
+
+
 def test_cli_process_exit_code_and_single_line(tmp_path):
     p = subprocess.run([sys.executable, str(ROOT / "segment.py"), "train", "--folder", str(tmp_path / "no"),
                         "--out", str(tmp_path / "m.pt")], capture_output=True, text=True, timeout=120)
