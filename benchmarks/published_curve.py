@@ -193,17 +193,21 @@ def verdict(ours, ref) -> str:
     lowest = float(ref["min"][hit[0]])
     rule = (f"at least {VERDICT_AT_LEAST} of {VERDICT_SEEDS} {VERDICT_METHOD} seeds >= {VERDICT_RETURN:g} at "
             f"{plot.short_frames(VERDICT_FRAME)} frames and none below the lowest published seed ({lowest:.1f})")
-    if len(at) < VERDICT_SEEDS:
-        return f"verdict: pending ({len(at)} of {VERDICT_SEEDS} seeds have evaluated at {VERDICT_FRAME}); rule: {rule}"
     if len(at) > VERDICT_SEEDS:
         return f"verdict: not applicable: the rule is stated for {VERDICT_SEEDS} seeds, {len(at)} have evaluated"
     good = sum(v >= VERDICT_RETURN for v in at.values())
     below = [s for s, v in at.items() if v < lowest]
     values = ", ".join(f"seed {s} {v:.1f}" for s, v in at.items())
-    if good >= VERDICT_AT_LEAST and not below:
-        return f"verdict: MATCH ({values}); rule: {rule}"
-    return (f"verdict: NO MATCH ({values}: {good} >= {VERDICT_RETURN:g}, below the lowest published seed: "
-            f"{below or 'none'}): a defect to find before anything else; rule: {rule}")
+    missing = VERDICT_SEEDS - len(at)
+    # NO MATCH can be decided before every seed has evaluated: one seed below the lowest published
+    # seed, or too few seeds left to reach the count, and no later value changes it
+    if below or good + missing < VERDICT_AT_LEAST:
+        early = f" with {len(at)} of {VERDICT_SEEDS} seeds evaluated, whatever the others give" if missing else ""
+        return (f"verdict: NO MATCH{early} ({values}: {good} >= {VERDICT_RETURN:g}, below the lowest published "
+                f"seed: {below or 'none'}): a defect to find before anything else; rule: {rule}")
+    if missing:
+        return f"verdict: pending ({len(at)} of {VERDICT_SEEDS} seeds have evaluated at {VERDICT_FRAME}); rule: {rule}"
+    return f"verdict: MATCH ({values}); rule: {rule}"
 
 
 def wall_time_table(ours) -> str:

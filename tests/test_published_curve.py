@@ -60,13 +60,25 @@ def test_table_and_verdict(tmp_path, published, capsys, base, verdict):
 
 def test_runs_in_progress_and_a_pending_verdict(tmp_path, published, capsys):
     runs = tmp_path / "runs"
-    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES)
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES, base=900.0)  # 950 at 40k: not below
     d = make_run(runs, "cartpole-balance_sparse", "drq", 2, frames=(0, 10000))
     (d / "config.json").write_text('{"env": "cartpole-balance_sparse", "method": "drq", "seed": 2, "frames": 40000}')
     code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png")
     assert code == 0, err
-    assert table_row(out, "20k")[1:5] == ["30.0 (1 of 3 seeds)", "30.0", "in progress", "not started"]
+    assert table_row(out, "20k")[1:5] == ["930.0 (1 of 3 seeds)", "930.0", "in progress", "not started"]
     assert "verdict: pending (1 of 3 seeds have evaluated at 40000)" in out
+
+
+def test_no_match_is_decided_by_one_seed_below_the_lowest_published(tmp_path, published, capsys):
+    """The rule's 'none below the lowest published seed' fails with one seed: no need to wait for
+    the others (published 40k lowest: 900; seed 1 at 40k: 810 + 40 + 10)."""
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES, base=810.0)
+    make_run(runs, "cartpole-balance_sparse", "drq", 2, frames=(0, 10000))
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png")
+    assert code == 0, err
+    assert "verdict: NO MATCH with 1 of 3 seeds evaluated, whatever the others give (seed 1 860.0:" in out
+    assert "below the lowest published seed: [1])" in out
 
 
 def test_commit_from_a_git_checkout(tmp_path, capsys):
@@ -114,7 +126,7 @@ def make_official_run(root, seed, frames=(0, 10000, 20000), task="cartpole_balan
 
 def test_official_runs_are_one_more_method(tmp_path, published, capsys):
     runs = tmp_path / "runs"
-    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES)
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES, base=900.0)
     make_official_run(runs, 1, frames=(20000, 0, 10000))  # rows out of order: sorted by frame
     make_official_run(runs, 4, frames=(0,))
     make_official_run(tmp_path / "other", 2, task="walker_stand")  # another task: left out
