@@ -72,7 +72,8 @@ class ConfigError(ValueError):
 
 
 class StorageError(Exception):
-    """An OSError while writing into a run directory, as one line naming the file and the cause."""
+    """An OSError while writing a file the user keeps (a run directory's files, segment.py's model and
+    label folders), as one line naming the file and the cause."""
 
 
 # --- Storage errors: a full disk, a read-only or foreign folder is one line, never a traceback -----
@@ -91,7 +92,8 @@ def storage_message(path, err: OSError) -> str:
 
 @contextlib.contextmanager
 def storing(path):
-    """Around every write into a run directory: an OSError becomes a StorageError naming `path`."""
+    """Around every write of a run directory's or segment.py's files: an OSError becomes a StorageError
+    naming `path`."""
     try:
         yield
     except OSError as e:
