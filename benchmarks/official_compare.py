@@ -175,14 +175,16 @@ def compare_policy(args):
     step = snapshot["counters"]["step"]
     std = sear.linear_std(cfg, step)
     print(f"{args.run_dir}: snapshot at frame {step * cfg.action_repeat} (agent step {step}, exploration std {std:.2f})")
-    rows = [("mean action, eval env (the evaluation's reset seeds)", eval_env, None, cfg.seed + 100_000),
-            ("mean action, train env (new reset seeds)", train_env, None, cfg.seed)]
-    rows += [(f"sampled with std {s:g}, train env (new reset seeds)", train_env, s, cfg.seed) for s in args.stds]
-    for label, env, sample_std, seed in rows:
+    # (label, env, std to sample with or None for the mean action, episode_seed's seed and first episode):
+    # the evaluation's own reset seeds (sear.evaluate), and train-env seeds no training episode used
+    fresh = (cfg.seed, 10 ** 6)
+    rows = [("mean action, eval env (the evaluation's reset seeds)", eval_env, None, (cfg.seed + 100_000, 0)),
+            ("mean action, train env (new reset seeds)", train_env, None, fresh)]
+    rows += [(f"sampled with std {s:g}, train env (new reset seeds)", train_env, s, fresh) for s in args.stds]
+    for label, env, sample_std, (seed, first) in rows:
         returns, actions = [], []
         for i in range(args.episodes):
             actions.append([])
-            first = 0 if seed != cfg.seed else 10 ** 6  # train-env seeds no training episode used
             obs, _ = env.reset(seed=experiment.episode_seed(seed, first + i))
             done, ret = False, 0.0
             while not done:
