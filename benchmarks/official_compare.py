@@ -11,6 +11,8 @@ EXPERIMENTS.md "Rung PC" runs when a learning curve does not match the published
     # 4. the simulator across MuJoCo / dm_control versions: record under each stack, then compare
     MUJOCO_GL=egl /old/venv/bin/python benchmarks/official_compare.py physics --record old.npz
     MUJOCO_GL=egl python benchmarks/official_compare.py physics --record new.npz --compare old.npz
+    # 5. the replay loader: the official one's batches beside benchmarks/drqv2_loader.py's, same episodes
+    python benchmarks/official_compare.py loader --official /path/to/drqv2
 
 Nothing is written; every line printed is a measurement. The official code is read from a checkout
 (bring it with `git clone`; this project ships none of it); it needs hydra-free modules only (dmc.py).
@@ -19,7 +21,9 @@ import argparse
 import glob
 import json
 import os
+import pathlib
 import sys
+import tempfile
 
 import numpy as np
 
@@ -255,6 +259,63 @@ def compare_physics(args):
                   f"mean {pixels.mean():.2f}, share of pixels that differ {(pixels.max(-1) > 0).mean():.2f}")
 
 
+# --- 5. the replay loader ---------------------------------------------------------------------------
+def compare_loader(args):
+    """The official make_replay_loader over episode files whose observations name (episode, step), and
+    drqv2_loader.LoaderReplay over the same episodes: for each batch in turn, which episodes it draws
+    from and which start steps (the observation's index in its episode). Episode files are written to a
+    temporary folder only."""
+    if not os.path.isfile(os.path.join(args.official, "replay_buffer.py")):
+        fail(f"--official: '{args.official}' is no checkout of facebookresearch/drqv2 (no replay_buffer.py)")
+    sys.path.insert(0, args.official)
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import replay_buffer  # the official loader
+    import drqv2_loader
+    lengths, n = args.lengths, args.nstep
+    if not lengths or min(lengths) < n or args.workers < 1 or args.batch_size < 1:
+        fail(f"loader: give --lengths of {n} (--nstep) steps or more each (the official loader cannot draw "
+             f"from a shorter episode), --workers and --batch-size of 1 or more")
+    ours = drqv2_loader.LoaderReplay(sum(lengths) + len(lengths) + 4 * args.batches + 8, (3, 1, 1), 1, 1, n, 0.99)
+    ours.workers, ours.update_every = args.workers, 2
+    with tempfile.TemporaryDirectory() as folder:
+        for e, length in enumerate(lengths):
+            obs = np.stack([np.full(length + 1, e), np.arange(length + 1)], 1).astype(np.uint8)[:, :, None, None]
+            np.savez(pathlib.Path(folder) / f"20261201T000000_{e}_{length}.npz", observation=obs,
+                     action=np.zeros((length + 1, 1), np.float32), reward=np.zeros((length + 1, 1), np.float32),
+                     discount=np.ones((length + 1, 1), np.float32))
+            ours.add_first({"pixels": np.full((3, 1, 1), e, np.uint8), "mask": np.zeros((1, 1, 1), bool)})
+            for _ in range(length):
+                ours.add(0.0, 0.0, False, {"pixels": np.zeros((3, 1, 1), np.uint8), "mask": np.zeros((1, 1, 1), bool)})
+        running = {"pixels": np.zeros((3, 1, 1), np.uint8), "mask": np.zeros((1, 1, 1), bool)}
+        ours.add_first(running)  # the running episode; the official loader sees only files
+        while (ours.t - len(lengths) - 1) % (2 * args.workers):  # the first update is worker 0's, as at step 2000
+            ours.add(0.0, 0.0, False, running)
+        firsts = np.flatnonzero(ours.first[:ours.t])
+        batches = iter(replay_buffer.make_replay_loader(pathlib.Path(folder), 10 ** 6, args.batch_size,
+                                                        args.workers, True, n, 0.99))
+        rng, same = np.random.default_rng(0), True
+        print(f"{len(lengths)} episodes of {lengths} steps, n-step {n}, {args.workers} workers, batch {args.batch_size}")
+        for i in range(args.batches):
+            obs = next(batches)[0].numpy()
+            official = set(zip(obs[:, 0, 0, 0].tolist(), obs[:, 1, 0, 0].tolist()))
+            starts = ours.draw_starts(args.batch_size, rng, lo=0)
+            e = np.searchsorted(firsts, starts, side="right") - 1
+            mine = set(zip(e.tolist(), (starts - firsts[e]).tolist()))
+            same &= official == mine
+            print(f"batch {i}: official {describe(official)} | drqv2_loader {describe(mine)} | "
+                  f"{'same' if official == mine else 'DIFFERENT'}")
+            ours.add(0.0, 0.0, False, running), ours.add(0.0, 0.0, False, running)
+        del batches  # the loader's worker processes end with it
+    print("every batch the same episodes and starts" if same else "the two differ")
+
+
+def describe(pairs):
+    """'episodes 0,4, starts 0-7': a batch's (episode, start) pairs, in short."""
+    eps = sorted({e for e, _ in pairs})
+    return "episodes " + ",".join(map(str, eps)) + ", starts " + "; ".join(
+        f"{min(s for x, s in pairs if x == e)}-{max(s for x, s in pairs if x == e)}" for e in eps)
+
+
 def main(argv=None):
     p = cli.OneLineParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="check", required=True)
@@ -281,12 +342,20 @@ def main(argv=None):
     m.add_argument("--steps", type=int, default=1000, help="physics steps per episode (no action repeat)")
     m.add_argument("--record", help="write states, rewards and frames to this .npz")
     m.add_argument("--compare", help="an .npz recorded under another stack")
+    w = sub.add_parser("loader", help="the official replay loader's batches beside drqv2_loader.py's")
+    w.add_argument("--official", required=True, help="a checkout of facebookresearch/drqv2")
+    w.add_argument("--lengths", type=lambda s: [int(x) for x in s.split(",") if x], default=[10, 8, 12, 10, 6, 10, 9, 3],
+                   help="comma-separated steps of each ended episode")
+    w.add_argument("--workers", type=int, default=4)
+    w.add_argument("--nstep", type=int, default=3)
+    w.add_argument("--batch-size", type=int, default=1024, help="large enough that a batch shows every start")
+    w.add_argument("--batches", type=int, default=8)
     try:
         args = p.parse_args(argv)
     except cli.ConfigError as e:
         fail(str(e))
     {"env": compare_env, "replay": compare_replay, "policy": compare_policy,
-     "physics": compare_physics}[args.check](args)
+     "physics": compare_physics, "loader": compare_loader}[args.check](args)
 
 
 if __name__ == "__main__":

@@ -88,7 +88,7 @@ def test_policy_reproduces_the_runs_evaluation_and_samples(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["official run without buffer", "our run without buffer", "no run dir",
-                                  "no checkout", "no such check"])
+                                  "no checkout", "loader without checkout", "no such check"])
 def test_bad_input_is_one_line_exit_2(tmp_path, case):
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -97,6 +97,7 @@ def test_bad_input_is_one_line_exit_2(tmp_path, case):
             "our run without buffer": ["replay", official, empty],
             "no run dir": ["policy", tmp_path / "missing"],
             "no checkout": ["env", "--official", empty],
+            "loader without checkout": ["loader", "--official", empty],
             "no such check": ["everything"]}[case]
     r = run(SCRIPT, *args, cwd=tmp_path)
     assert r.returncode == 2

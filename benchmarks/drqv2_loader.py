@@ -1,0 +1,110 @@
+"""sear.py with its replay batches drawn the way the official DrQ-v2's replay loader draws them: the
+one difference left between our DrQ and the official code that EXPERIMENTS.md "Rung PC" could not
+rule out by reading (a diagnostic for that rung, not a mode of sear.py).
+
+    MUJOCO_GL=egl python benchmarks/drqv2_loader.py [--workers 4] -- --env cartpole-balance_sparse ...
+    MUJOCO_GL=egl python benchmarks/drqv2_loader.py -- --resume RUN_DIR
+
+Everything after `--` is sear.py's flags. The official loader (drqv2 replay_buffer.py, a torch
+DataLoader over an IterableDataset with replay_buffer_num_workers=4) differs from sear.ReplayBuffer's
+uniform draw in three ways, and this sampler does all three:
+  1. a batch comes whole from one worker, and worker w holds only the episodes whose index is w modulo
+     the worker count; batches come from the workers in turn;
+  2. an episode is stored when it ends: the running episode is never sampled;
+  3. inside a worker, the episode is drawn uniformly, then a start from which all n steps lie inside
+     the episode (the last n-1 starts of an episode are never drawn; an episode of fewer than n steps,
+     on which the official loader fails, is never drawn).
+`python benchmarks/official_compare.py loader --official DRQV2` shows the official loader's batches
+beside this sampler's on the same episodes.
+What it leaves out: each worker re-reads the episode files every 1000 samples and runs two batches
+ahead, so an ended episode reaches the batches ~20-50 agent steps later there.
+
+The run directory gets a drqv2_loader.json; --resume through this script needs it (resume such a run
+through this script only: sear.py itself would continue with its uniform draw).
+"""
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import cli  # noqa: E402
+import experiment  # noqa: E402
+import sear  # noqa: E402
+
+MARKER = "drqv2_loader.json"
+
+
+class LoaderReplay(sear.ReplayBuffer):
+    """sear.ReplayBuffer, sampled as the official loader samples (the module docstring's 1-3)."""
+    workers = 4       # the official replay_buffer_num_workers
+    update_every = 2  # agent steps per update: which worker's turn it is follows from the step
+
+    def worker_episodes(self):
+        """(first slot, last possible start) of each ended episode the current batch's worker holds."""
+        if self.t > self.capacity:
+            raise cli.ConfigError("drqv2_loader.py: the replay ring has wrapped; give a --replay-size "
+                                  "above the run's agent steps plus its episodes")
+        firsts = np.flatnonzero(self.first[:self.t])  # each episode's reset slot, oldest first
+        step = self.t - len(firsts)                    # agent steps so far (each episode adds a reset slot)
+        ended_first, ended_last = firsts[:-1], firsts[1:] - 1  # the newest episode is still running
+        last_start = ended_last - self.nstep           # all n steps inside the episode
+        index = np.arange(len(ended_first))
+        mine = (index % self.workers == (step // self.update_every) % self.workers) & (last_start >= ended_first)
+        if not mine.any():  # fewer ended episodes than workers: the official loader would fail here
+            mine = last_start >= ended_first
+        return ended_first[mine], last_start[mine]
+
+    def can_sample(self):
+        firsts = np.flatnonzero(self.first[:self.t])
+        return bool(np.any(firsts[1:] - 1 - self.nstep >= firsts[:-1]))
+
+    def draw_starts(self, n, rng: np.random.Generator, lo):
+        first, last_start = self.worker_episodes()
+        e = rng.integers(0, len(first), size=n)  # an episode uniformly, then a start in it
+        return first[e] + rng.integers(0, last_start[e] - first[e] + 1)
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    ours, sear_args = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
+    p = cli.OneLineParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--workers", type=int, default=4, help="the official replay_buffer_num_workers")
+    try:
+        args = p.parse_args(ours)
+    except cli.ConfigError as e:
+        print(f"drqv2_loader.py: {e}", file=sys.stderr)
+        return 2
+    if args.workers < 1 or not sear_args:
+        print("drqv2_loader.py: give --workers 1 or more and sear.py's flags after --", file=sys.stderr)
+        return 2
+    LoaderReplay.workers = args.workers
+    sear.ReplayBuffer = LoaderReplay  # sear.train builds its buffer from this name
+
+    create, train = experiment.RunDir.create, sear.train
+
+    def create_marked(rundir):
+        resumed = rundir.path is not None
+        if resumed:
+            marker = os.path.join(rundir.path, MARKER)
+            if not os.path.isfile(marker):
+                raise cli.ConfigError(f"--resume: '{rundir.path}' was not trained by drqv2_loader.py (no {MARKER})")
+            with open(marker) as f:
+                LoaderReplay.workers = int(json.load(f)["workers"])  # the run's own, whatever --workers says
+        create(rundir)
+        if not resumed:
+            with open(os.path.join(rundir.path, MARKER), "w") as f:
+                json.dump({"workers": args.workers}, f)
+
+    def train_loader(cfg, run, snapshot=None):
+        LoaderReplay.update_every = cfg.update_every
+        return train(cfg, run, snapshot)
+
+    experiment.RunDir.create, sear.train = create_marked, train_loader
+    return sear.main(sear_args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
