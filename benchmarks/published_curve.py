@@ -11,7 +11,8 @@ runs on other tasks are left out. Prints the source commit; a table at --frames 
 mean over its seeds and every seed (planned seeds without a run or an evaluation yet say so), and the
 published seeds' mean and min-max; the verdict of the rung's rule; each run's wall time. Writes the
 figure: each seed thin, each method's mean thick, the published mean with its min-max band.
---official adds runs of the official code (facebookresearch/drqv2's train.py, run on this machine:
+Runs of benchmarks/drqv2_loader.py (a drqv2_loader.json in the run dir) are one more method,
+"drq (drqv2 loader)". --official adds runs of the official code (facebookresearch/drqv2's train.py, run on this machine:
 hydra run dirs with .hydra/config.yaml and eval.csv) as one more method, the check of the machine
 itself when our DrQ does not match.
 Errors are one line on stderr, exit code 2.
@@ -88,6 +89,8 @@ def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
         if plot.task_key(plot.env_of(run)) != task:
             continue
         method, seed = str(run["config"].get("method")), int(run["config"].get("seed", 0))
+        if os.path.isfile(os.path.join(d, LOADER_MARKER)):  # trained by benchmarks/drqv2_loader.py
+            method += LOADER
         if seed in ours.get(method, {}):
             raise CurveError(f"two runs of {method} seed {seed} on {task}: {ours[method][seed]['dir']} and {d}")
         ours.setdefault(method, {})[seed] = run
@@ -97,6 +100,7 @@ def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
 
 
 OFFICIAL = "drqv2 official"
+LOADER, LOADER_MARKER = " (drqv2 loader)", "drqv2_loader.json"  # drqv2_loader.py's runs: a method of their own
 
 
 def load_official(paths: list[str], task: str) -> dict[int, dict]:
@@ -226,17 +230,24 @@ def figure(ours, ref, methods, out: str, task: str, commit: str):
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
     budget = max(r["config"].get("frames", 0) for runs in ours.values() for r in runs.values())
     for i, m in enumerate(methods):
         runs = [r for _, r in sorted(ours.get(m, {}).items()) if len(r["frames"])]
         for r in runs:
             ax.plot(r["frames"], r["values"], color=f"C{i}", lw=0.8, alpha=0.4)
         if runs:
-            frames, mean, _ = plot.aggregate([(r["frames"], r["values"]) for r in runs])
-            who = "official code, this machine" if m == OFFICIAL else "ours"
-            ax.plot(frames, mean, color=f"C{i}", lw=2, marker="o", ms=3,
-                    label=f"{m}, {who} (n={len(runs)}: mean, seeds thin)")
+            curves = [(r["frames"], r["values"]) for r in runs]
+            frames, mean, _ = plot.aggregate(curves)
+            full = plot.coverage(curves) == len(runs)  # a mean over every seed; dashed: over those that got there
+            who = "DrQ-v2's code, this machine" if m == OFFICIAL else f"{m}, ours"
+            seeds = f"{len(runs)} seed{'s' if len(runs) > 1 else ''}"
+            ax.plot(frames, np.where(full, mean, np.nan), color=f"C{i}", lw=2, marker="o", ms=3,
+                    label=f"{who} ({seeds}: mean, each seed thin" + ("" if full.all() else
+                                                                          "; dashed: fewer seeds") + ")")
+            if not full.all():
+                joined = ~full | np.convolve(~full, [1, 1, 1], mode="same").astype(bool)
+                ax.plot(frames, np.where(joined, mean, np.nan), color=f"C{i}", lw=1.2, ls="--", marker="o", ms=2)
     plot.draw_reference(ax, ref)
     ax.axhline(VERDICT_RETURN, color="0.5", ls="--", lw=0.8, label=f"verdict: {VERDICT_RETURN:g} at "
                f"{plot.short_frames(VERDICT_FRAME)} frames")
@@ -248,11 +259,13 @@ def figure(ours, ref, methods, out: str, task: str, commit: str):
     ax.set_title(f"{task}: ours vs DrQ-v2's published curve\n(facebookresearch/drqv2 {commit[:12]}, "
                  f"curves/dmc_{task}.csv)", fontsize=9)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize="small")
+    ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.13))  # below: the curves fill the axes
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=120)
+    labels = ax.get_legend_handles_labels()[1]
     plt.close(fig)
+    return labels
 
 
 def main(argv=None) -> int:
@@ -283,6 +296,10 @@ def main(argv=None) -> int:
         ours = load_ours(args.runs, task)
         seeds = {m: args.seeds for m in args.methods}
         methods = list(args.methods)
+        for m in sorted(ours):  # runs sampled as the official loader samples, beside the method they vary
+            if m.endswith(LOADER) and m not in methods:
+                methods.append(m)
+                seeds[m] = sorted(ours[m])
         if args.official:
             ours[OFFICIAL] = load_official(args.official, task)
             methods.append(OFFICIAL)

@@ -69,6 +69,23 @@ def test_runs_in_progress_and_a_pending_verdict(tmp_path, published, capsys):
     assert "verdict: pending (1 of 3 seeds have evaluated at 40000)" in out
 
 
+def test_figure_legend_counts_seeds_and_dashes_the_mean_where_some_are_missing(tmp_path, published, capsys,
+                                                                             monkeypatch):
+    labels, figure = [], published_curve.figure
+    monkeypatch.setattr(published_curve, "figure", lambda *a: labels.extend(figure(*a)))
+    runs = tmp_path / "runs"
+    for seed in (1, 2):
+        make_run(runs, "cartpole-balance_sparse", "drq", seed, frames=FRAMES, base=900.0)
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "full.png")
+    assert code == 0, err
+    assert "drq, ours (2 seeds: mean, each seed thin)" in labels
+    make_run(runs, "cartpole-balance_sparse", "drq", 3, frames=(0, 10000))
+    labels.clear()
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "partial.png")
+    assert code == 0, err
+    assert "drq, ours (3 seeds: mean, each seed thin; dashed: fewer seeds)" in labels
+
+
 def test_no_match_is_decided_by_one_seed_below_the_lowest_published(tmp_path, published, capsys):
     """The rule's 'none below the lowest published seed' fails with one seed: no need to wait for
     the others (published 40k lowest: 900; seed 1 at 40k: 810 + 40 + 10)."""
@@ -139,6 +156,20 @@ def test_official_runs_are_one_more_method(tmp_path, published, capsys):
     assert table_row(out, "0")[-4:-1] == ["502.5", "501.0", "504.0"]
     assert "| drqv2 official | 1 | 20000 | 0.05 h |" in out  # its wall time: total_time of the last row
     assert "verdict: pending (1 of 3" in out  # the rule is about our DrQ, not the official code
+
+
+def test_drqv2_loader_runs_are_a_method_of_their_own(tmp_path, published, capsys):
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 2, frames=FRAMES, base=900.0)  # 1000 at 40k
+    loader = make_run(tmp_path / "loader-2", "cartpole-balance_sparse", "drq", 2, frames=(0, 10000), base=100.0)
+    (loader / "drqv2_loader.json").write_text('{"workers": 4}')
+    code, out, err = run_main(capsys, runs, tmp_path / "loader-2", "--published", published,
+                              "--out", tmp_path / "fig.png")
+    assert code == 0, err  # the same method and seed twice, but one of them sampled as the official loader does
+    head = next(line for line in out.splitlines() if line.startswith("| frames |")).split(" | ")
+    assert head[-3:-1] == ["drq (drqv2 loader) mean", "drq (drqv2 loader) seed 2"]
+    assert table_row(out, "10k")[-3:-1] == ["130.0", "130.0"]
+    assert "verdict: pending (1 of 3" in out  # the rule is about our DrQ as sear.py trains it
 
 
 def test_official_dir_that_is_no_official_run_is_one_line(tmp_path, published, capsys):
