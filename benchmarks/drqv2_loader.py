@@ -67,6 +67,36 @@ class LoaderReplay(sear.ReplayBuffer):
         return first[e] + rng.integers(0, last_start[e] - first[e] + 1)
 
 
+def install(workers):
+    """sear.py trains with LoaderReplay: its buffer class, the run dir's marker (checked on --resume)
+    and the resume command that an interrupted run prints."""
+    LoaderReplay.workers = workers
+    sear.ReplayBuffer = LoaderReplay  # sear.train builds its buffer from this name
+    create, train, interrupted = experiment.RunDir.create, sear.train, experiment.interrupt_message
+
+    def create_marked(rundir):
+        resumed = rundir.path is not None
+        if resumed:
+            marker = os.path.join(rundir.path, MARKER)
+            if not os.path.isfile(marker):
+                raise cli.ConfigError(f"--resume: '{rundir.path}' was not trained by drqv2_loader.py (no {MARKER})")
+            with open(marker) as f:
+                LoaderReplay.workers = int(json.load(f)["workers"])  # the run's own, whatever --workers says
+        create(rundir)
+        if not resumed:
+            with open(os.path.join(rundir.path, MARKER), "w") as f:
+                json.dump({"workers": workers}, f)
+
+    def train_loader(cfg, run, snapshot=None):
+        LoaderReplay.update_every = cfg.update_every
+        return train(cfg, run, snapshot)
+
+    def interrupt_message(*a, **k):  # resumed through sear.py, the run would go on with uniform batches
+        return interrupted(*a, **k).replace("python sear.py --resume", "python benchmarks/drqv2_loader.py -- --resume")
+
+    experiment.RunDir.create, sear.train, experiment.interrupt_message = create_marked, train_loader, interrupt_message
+
+
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     ours, sear_args = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
@@ -80,29 +110,7 @@ def main(argv=None):
     if args.workers < 1 or not sear_args:
         print("drqv2_loader.py: give --workers 1 or more and sear.py's flags after --", file=sys.stderr)
         return 2
-    LoaderReplay.workers = args.workers
-    sear.ReplayBuffer = LoaderReplay  # sear.train builds its buffer from this name
-
-    create, train = experiment.RunDir.create, sear.train
-
-    def create_marked(rundir):
-        resumed = rundir.path is not None
-        if resumed:
-            marker = os.path.join(rundir.path, MARKER)
-            if not os.path.isfile(marker):
-                raise cli.ConfigError(f"--resume: '{rundir.path}' was not trained by drqv2_loader.py (no {MARKER})")
-            with open(marker) as f:
-                LoaderReplay.workers = int(json.load(f)["workers"])  # the run's own, whatever --workers says
-        create(rundir)
-        if not resumed:
-            with open(os.path.join(rundir.path, MARKER), "w") as f:
-                json.dump({"workers": args.workers}, f)
-
-    def train_loader(cfg, run, snapshot=None):
-        LoaderReplay.update_every = cfg.update_every
-        return train(cfg, run, snapshot)
-
-    experiment.RunDir.create, sear.train = create_marked, train_loader
+    install(args.workers)
     return sear.main(sear_args)
 
 

@@ -93,3 +93,11 @@ def test_a_run_trains_marks_its_dir_and_resumes_only_through_the_script(tmp_path
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "drqv2_loader.json" in r.stderr, r.stderr
     r = run(SCRIPT, "--workers", "0", cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.startswith("drqv2_loader.py: ") and r.stderr.count("\n") == 1
+
+
+def test_an_interrupted_run_names_this_script_to_resume_with(tmp_path):
+    code = ("import sys; sys.path.insert(0, 'benchmarks'); import drqv2_loader, experiment; drqv2_loader.install(4); "
+            "print(experiment.interrupt_message('/r/x', 5000, 'between episodes', 5000, 10, 'stopped by SIGTERM'))")
+    r = run("-c", code, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().endswith("continue with: python benchmarks/drqv2_loader.py -- --resume /r/x"), r.stdout
