@@ -22,7 +22,6 @@ ahead, so an ended episode reaches the batches ~20-50 agent steps later there.
 The run directory gets a drqv2_loader.json; --resume through this script needs it (resume such a run
 through this script only: sear.py itself would continue with its uniform draw).
 """
-import argparse
 import json
 import os
 import sys
