@@ -186,19 +186,22 @@ def comparison_table(ours, ref, methods, seeds, frames) -> str:
     return "\n".join(lines)
 
 
-def verdict(ours, ref) -> str:
-    """The rung's rule applied to what the runs have so far."""
-    runs = ours.get(VERDICT_METHOD, {})
+def verdict(ours, ref, method=VERDICT_METHOD) -> str:
+    """The rung's rule applied to what the runs have so far: to our DrQ, or the same rule to another
+    method's runs (the official code's: whether the rule asks more than it gives on this machine)."""
+    runs = ours.get(method, {})
+    head = "verdict" if method == VERDICT_METHOD else f"the same rule on {method}"
+    defect = ": a defect to find before anything else" if method == VERDICT_METHOD else ""
     at = {s: value_at(r, VERDICT_FRAME) for s, r in sorted(runs.items())}
     at = {s: v for s, v in at.items() if v is not None}
     hit = np.flatnonzero(ref["frames"] == VERDICT_FRAME)
     if not len(hit):
-        return f"verdict: not applicable: the published curve has no point at {VERDICT_FRAME} frames"
+        return f"{head}: not applicable: the published curve has no point at {VERDICT_FRAME} frames"
     lowest = float(ref["min"][hit[0]])
-    rule = (f"at least {VERDICT_AT_LEAST} of {VERDICT_SEEDS} {VERDICT_METHOD} seeds >= {VERDICT_RETURN:g} at "
+    rule = (f"at least {VERDICT_AT_LEAST} of {VERDICT_SEEDS} {method} seeds >= {VERDICT_RETURN:g} at "
             f"{plot.short_frames(VERDICT_FRAME)} frames and none below the lowest published seed ({lowest:.1f})")
     if len(at) > VERDICT_SEEDS:
-        return f"verdict: not applicable: the rule is stated for {VERDICT_SEEDS} seeds, {len(at)} have evaluated"
+        return f"{head}: not applicable: the rule is stated for {VERDICT_SEEDS} seeds, {len(at)} have evaluated"
     good = sum(v >= VERDICT_RETURN for v in at.values())
     below = [s for s, v in at.items() if v < lowest]
     values = ", ".join(f"seed {s} {v:.1f}" for s, v in at.items())
@@ -207,11 +210,11 @@ def verdict(ours, ref) -> str:
     # seed, or too few seeds left to reach the count, and no later value changes it
     if below or good + missing < VERDICT_AT_LEAST:
         early = f" with {len(at)} of {VERDICT_SEEDS} seeds evaluated, whatever the others give" if missing else ""
-        return (f"verdict: NO MATCH{early} ({values}: {good} >= {VERDICT_RETURN:g}, below the lowest published "
-                f"seed: {below or 'none'}): a defect to find before anything else; rule: {rule}")
+        return (f"{head}: NO MATCH{early} ({values}: {good} >= {VERDICT_RETURN:g}, below the lowest published "
+                f"seed: {below or 'none'}){defect}; rule: {rule}")
     if missing:
-        return f"verdict: pending ({len(at)} of {VERDICT_SEEDS} seeds have evaluated at {VERDICT_FRAME}); rule: {rule}"
-    return f"verdict: MATCH ({values}); rule: {rule}"
+        return f"{head}: pending ({len(at)} of {VERDICT_SEEDS} seeds have evaluated at {VERDICT_FRAME}); rule: {rule}"
+    return f"{head}: MATCH ({values}); rule: {rule}"
 
 
 def wall_time_table(ours) -> str:
@@ -315,7 +318,11 @@ def main(argv=None) -> int:
     spacing = np.unique(np.diff(ref["frames"]))
     if len(spacing) == 1:
         print(f"\n(the published curve has a point every {spacing[0]:.0f} frames: 'no point' in between)")
-    print(f"\n{verdict(ours, ref)}\n")
+    print(f"\n{verdict(ours, ref)}")
+    for m in methods:  # the official code (and drqv2_loader.py's runs) by the same rule
+        if m != VERDICT_METHOD and (m == OFFICIAL or m.endswith(LOADER)) and ours.get(m):
+            print(verdict(ours, ref, m))
+    print()
     print(wall_time_table(ours))
     print(f"\nwrote {args.out}")
     return 0

@@ -156,6 +156,7 @@ def test_official_runs_are_one_more_method(tmp_path, published, capsys):
     assert table_row(out, "0")[-4:-1] == ["502.5", "501.0", "504.0"]
     assert "| drqv2 official | 1 | 20000 | 0.05 h |" in out  # its wall time: total_time of the last row
     assert "verdict: pending (1 of 3" in out  # the rule is about our DrQ, not the official code
+    assert "the same rule on drqv2 official: pending (0 of 3 seeds have evaluated at 40000)" in out
 
 
 def test_drqv2_loader_runs_are_a_method_of_their_own(tmp_path, published, capsys):
@@ -170,6 +171,21 @@ def test_drqv2_loader_runs_are_a_method_of_their_own(tmp_path, published, capsys
     assert head[-3:-1] == ["drq (drqv2 loader) mean", "drq (drqv2 loader) seed 2"]
     assert table_row(out, "10k")[-3:-1] == ["130.0", "130.0"]
     assert "verdict: pending (1 of 3" in out  # the rule is about our DrQ as sear.py trains it
+
+
+def test_the_same_rule_is_applied_to_the_official_code(tmp_path, published, capsys):
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES, base=840.0)  # 890 at 40k: below 900
+    for seed in (1, 2, 3):
+        make_official_run(runs, seed, frames=FRAMES)  # 900 + seed at 40k
+    code, out, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png",
+                              "--official", runs / "official-*")
+    assert code == 0, err
+    lines = out.splitlines()
+    ours = next(i for i, line in enumerate(lines) if line.startswith("verdict: NO MATCH"))
+    assert "a defect to find" in lines[ours]
+    assert lines[ours + 1].startswith("the same rule on drqv2 official: MATCH (seed 1 901.0, seed 2 902.0, "
+                                      "seed 3 903.0); rule: at least 2 of 3 drqv2 official seeds >= 900")
 
 
 def test_official_dir_that_is_no_official_run_is_one_line(tmp_path, published, capsys):
