@@ -257,20 +257,26 @@ def band(mean: np.ndarray, ci: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (ci[0], ci[1]) if ci.ndim == 2 else (mean - ci, mean + ci)
 
 
+def draw_mean(ax, frames, mean, full, color: str, label: str, dashed: dict | None = None, **solid) -> bool:
+    """A mean solid where `full` (every run has the frame), dashed elsewhere; the dashed part joins
+    the solid one at its neighbouring points. True if some part is dashed."""
+    ax.plot(frames, np.where(full, mean, np.nan), color=color, label=label, **solid)
+    partial = ~np.asarray(full)
+    if partial.any():
+        joined = partial | np.convolve(partial, [1, 1, 1], mode="same").astype(bool)
+        ax.plot(frames, np.where(joined, mean, np.nan), color=color, ls="--", **(dashed or {"lw": 1}))
+    return bool(partial.any())
+
+
 def draw_line(ax, frames, mean, ci, n, color: str, label: str) -> bool:
     """A group's mean and 95% band; dashed where not all of its runs have reached the frame (n: runs
     per frame, or one count). True if some part is dashed."""
     n = np.broadcast_to(np.asarray(n), np.shape(frames))
-    full = n == n.max()
-    ax.plot(frames, np.where(full, mean, np.nan), color=color, label=f"{label} (n={n.max()})")
-    partial = ~full
-    if partial.any():  # the dashed part joins the solid one at its neighbouring points
-        joined = partial | np.convolve(partial, [1, 1, 1], mode="same").astype(bool)
-        ax.plot(frames, np.where(joined, mean, np.nan), color=color, ls="--", lw=1)
+    partial = draw_mean(ax, frames, mean, n == n.max(), color, f"{label} (n={n.max()})")
     lo, hi = band(mean, ci)
     if n.max() > 1:
         ax.fill_between(frames, lo, hi, color=color, alpha=0.2, lw=0)
-    return bool(partial.any())
+    return partial
 
 
 def rate_axis(ax, ylabel: str) -> None:

@@ -245,12 +245,9 @@ def figure(ours, ref, methods, out: str, task: str, commit: str):
             full = plot.coverage(curves) == len(runs)  # a mean over every seed; dashed: over those that got there
             who = "DrQ-v2's code, this machine" if m == OFFICIAL else f"{m}, ours"
             seeds = f"{len(runs)} seed{'s' if len(runs) > 1 else ''}"
-            ax.plot(frames, np.where(full, mean, np.nan), color=f"C{i}", lw=2, marker="o", ms=3,
-                    label=f"{who} ({seeds}: mean, each seed thin" + ("" if full.all() else
-                                                                          "; dashed: fewer seeds") + ")")
-            if not full.all():
-                joined = ~full | np.convolve(~full, [1, 1, 1], mode="same").astype(bool)
-                ax.plot(frames, np.where(joined, mean, np.nan), color=f"C{i}", lw=1.2, ls="--", marker="o", ms=2)
+            label = f"{who} ({seeds}: mean, each seed thin" + ("" if full.all() else "; dashed: fewer seeds") + ")"
+            plot.draw_mean(ax, frames, mean, full, f"C{i}", label, dashed={"lw": 1.2, "marker": "o", "ms": 2},
+                           lw=2, marker="o", ms=3)
     plot.draw_reference(ax, ref)
     ax.axhline(VERDICT_RETURN, color="0.5", ls="--", lw=0.8, label=f"verdict: {VERDICT_RETURN:g} at "
                f"{plot.short_frames(VERDICT_FRAME)} frames")
