@@ -13,11 +13,15 @@ EXPERIMENTS.md "Rung PC" runs when a learning curve does not match the published
     MUJOCO_GL=egl python benchmarks/official_compare.py physics --record new.npz --compare old.npz
     # 5. the replay loader: the official one's batches beside benchmarks/drqv2_loader.py's, same episodes
     python benchmarks/official_compare.py loader --official /path/to/drqv2
+    # 6. the actor's saturation and spread per block of frames: our runs' train.csv beside an official
+    #    run's actor.csv (a read-only probe's rows, see actor_rows)
+    python benchmarks/official_compare.py saturation /path/to/official-run RUN_DIR [RUN_DIR ...]
 
 Nothing is written; every line printed is a measurement. The official code is read from a checkout
 (bring it with `git clone`; this project ships none of it); it needs hydra-free modules only (dmc.py).
 """
 import argparse
+import csv
 import glob
 import json
 import os
@@ -309,6 +313,55 @@ def compare_loader(args):
     print("every batch the same episodes and starts" if same else "the two differ")
 
 
+# --- 6. the actor's saturation and spread ----------------------------------------------------------
+def actor_rows(run_dir, action_repeat):
+    """(label, frames, saturated, spread) of a run's actor. Ours: train.csv's actor_saturated and
+    action_spread, each an episode's mean over its updates, at the frame before the episode's end (so
+    that the episode falls into the block it ran in). An official run: actor.csv, one row per update,
+    `step,saturated,spread`, which official DrQ-v2 does not write: a read-only probe appended after
+    `self.actor_opt.step()` in `DrQV2Agent.update_actor` writes `step`, `(dist.loc.abs() == 1.0).float().mean()`
+    and `dist.loc.std(0, unbiased=False).mean()` (sear.actor_metrics' two quantities); where a resume
+    repeated steps, the last row of each step counts; its frame is step x action repeat."""
+    probe, ours = os.path.join(run_dir, "actor.csv"), os.path.join(run_dir, "train.csv")
+    if os.path.isfile(probe):
+        last = {}
+        with open(probe) as f:
+            for line in f:
+                try:
+                    step, sat, spread = line.split(",")
+                    last[int(step)] = (float(sat), float(spread))
+                except ValueError:
+                    fail(f"'{probe}': a row is not step,saturated,spread: {line.strip()!r}")
+        steps = sorted(last)
+        values = np.array([last[s] for s in steps]).reshape(-1, 2)
+        return (f"official ({os.path.basename(os.path.normpath(run_dir))})",
+                np.array(steps) * action_repeat, values[:, 0], values[:, 1])
+    if not os.path.isfile(ours):
+        fail(f"'{run_dir}' has neither actor.csv (an official run with the probe) nor train.csv (our run)")
+    with open(ours) as f:
+        rows = [r for r in csv.DictReader(f) if r.get("actor_saturated")]
+    if not rows:
+        fail(f"'{ours}' has no actor_saturated values (an official run without the probe's actor.csv, or ours before its first update)")
+    return (run_label(run_dir), np.array([int(r["frame"]) - 1 for r in rows]),
+            np.array([float(r["actor_saturated"]) for r in rows]), np.array([float(r["action_spread"]) for r in rows]))
+
+
+def compare_saturation(args):
+    """Per block of frames: the share of the batch's mean actions at exactly +-1, and their spread."""
+    runs = [actor_rows(r, args.action_repeat) for r in args.run_dirs]
+    block = args.block
+    print(f"each cell, over the updates in a block of {block} frames: share of mean-action entries at exactly "
+          f"+-1 / their std over the batch (ours: the mean of each episode's means)")
+    print("| frames | " + " | ".join(label for label, *_ in runs) + " |\n|---|" + "---|" * len(runs))
+    for lo in range(0, int(max(frames.max() for _, frames, _, _ in runs)) + 1, block):
+        cells = []
+        for _, frames, sat, spread in runs:
+            inside = (frames >= lo) & (frames < lo + block)
+            cells.append(f"{sat[inside].mean():.2f} / {spread[inside].mean():.3g}" if inside.any() else "")
+        if any(cells):
+            print(f"| {lo / 1000:g}k–{(lo + block) / 1000:g}k | " + " | ".join(cells) + " |")
+
+
 def describe(pairs):
     """'episodes 0,4, starts 0-7': a batch's (episode, start) pairs, in short."""
     eps = sorted({e for e, _ in pairs})
@@ -350,12 +403,19 @@ def main(argv=None):
     w.add_argument("--nstep", type=int, default=3)
     w.add_argument("--batch-size", type=int, default=1024, help="large enough that a batch shows every start")
     w.add_argument("--batches", type=int, default=8)
+    a = sub.add_parser("saturation", help="the actor's saturation and spread per block of frames, runs side by side")
+    a.add_argument("run_dirs", nargs="+", help="official run dirs (with the probe's actor.csv) and ours (train.csv)")
+    a.add_argument("--block", type=int, default=2000, help="frames per table row")
+    a.add_argument("--action-repeat", type=int, default=2, help="the official run's (its probe logs agent steps)")
     try:
         args = p.parse_args(argv)
     except cli.ConfigError as e:
         fail(str(e))
+    if min(getattr(args, "block", 1), getattr(args, "action_repeat", 1)) < 1:
+        fail(f"{args.check}: --block and --action-repeat must be 1 or more")
     {"env": compare_env, "replay": compare_replay, "policy": compare_policy,
-     "physics": compare_physics, "loader": compare_loader}[args.check](args)
+     "physics": compare_physics, "loader": compare_loader,
+     "saturation": compare_saturation}[args.check](args)
 
 
 if __name__ == "__main__":

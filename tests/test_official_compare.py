@@ -87,8 +87,32 @@ def test_policy_reproduces_the_runs_evaluation_and_samples(tmp_path):
     assert "| 0–4 | 0 / 1.00 / 1.00 / 0.00 | " in r.stdout
 
 
+def test_saturation_table_puts_the_official_probe_beside_our_train_csv(tmp_path):
+    """Per block of frames: the official probe's per-update rows (a resumed step's last row counts;
+    frame = step x action repeat) beside our episodes' means (an episode in the block it ran in)."""
+    official = tmp_path / "official-1"
+    official.mkdir()
+    (official / "actor.csv").write_text("2000,0.0,0.5\n2100,1.0,0.0\n2100,0.5,0.25\n")
+    ours = tmp_path / "drq-4"
+    ours.mkdir()
+    (ours / "config.json").write_text('{"method": "drq", "seed": 4}')
+    with open(ours / "train.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "step", "actor_saturated", "action_spread"])
+        w.writerows([[1000, 500, "", ""], [5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.3], [7000, 3500, 0.0, 0.2]])
+    r = run(SCRIPT, "saturation", official, ours, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "| frames | official (official-1) | drq seed 4 |" in r.stdout
+    assert "| 4k–6k | 0.25 / 0.375 | 0.75 / 0.2 |" in r.stdout
+    assert "| 6k–8k |  | 0.00 / 0.2 |" in r.stdout
+    assert "| 0k–2k" not in r.stdout and "| 2k–4k" not in r.stdout  # seed frames: no update, no row
+    r = run(SCRIPT, "saturation", official, ours, "--block", "1000", "--action-repeat", "1", cwd=tmp_path)
+    assert "| 2k–3k | 0.25 / 0.375 |  |" in r.stdout and "| 4k–5k |  | 0.50 / 0.1 |" in r.stdout
+
+
 @pytest.mark.parametrize("case", ["official run without buffer", "our run without buffer", "no run dir",
-                                  "no checkout", "loader without checkout", "no such check"])
+                                  "no checkout", "loader without checkout", "no such check",
+                                  "saturation without actor data", "saturation block 0"])
 def test_bad_input_is_one_line_exit_2(tmp_path, case):
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -98,7 +122,9 @@ def test_bad_input_is_one_line_exit_2(tmp_path, case):
             "no run dir": ["policy", tmp_path / "missing"],
             "no checkout": ["env", "--official", empty],
             "loader without checkout": ["loader", "--official", empty],
-            "no such check": ["everything"]}[case]
+            "no such check": ["everything"],
+            "saturation without actor data": ["saturation", empty],
+            "saturation block 0": ["saturation", official, "--block", "0"]}[case]
     r = run(SCRIPT, *args, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.startswith("official_compare.py: ") and r.stderr.count("\n") == 1, r.stderr
