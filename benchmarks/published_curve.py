@@ -3,6 +3,8 @@
     python benchmarks/published_curve.py --published ../drqv2 /work/curve-runs --out docs/published_curve.png
     python benchmarks/published_curve.py --published drqv2-curves/ --task cartpole_balance runs/
     python benchmarks/published_curve.py --published ../drqv2 /work/curve-runs --official /work/curve-runs/official-*
+    python benchmarks/published_curve.py --published ../drqv2 --results benchmarks/published_curve_results.csv \
+        /work/curve-runs --official /work/curve-runs/official-* --record
 
 --published is a checkout of facebookresearch/drqv2 (read in place: curves/dmc_<task>.csv, and the
 commit from git), a folder holding dmc_<task>.csv (the commit from a 40-hex id in its README), or the
@@ -15,6 +17,11 @@ Runs of benchmarks/drqv2_loader.py (a drqv2_loader.json in the run dir) are one 
 "drq (drqv2 loader)". --official adds runs of the official code (facebookresearch/drqv2's train.py, run on this machine:
 hydra run dirs with .hydra/config.yaml and eval.csv) as one more method, the check of the machine
 itself when our DrQ does not match.
+--results is a results file (method, seed, task, frame, return, wall_time, source; one row per
+evaluation) read as runs beside the run dirs: the evaluations of runs whose directories are gone. A run
+dir and a results file's run of the same method and seed are one run: their returns must agree where
+both have a frame, and the run dir's rows win. --record writes every run's evaluations back into the
+results file, so that what the runs reached outlives the machine they ran on.
 Errors are one line on stderr, exit code 2.
 """
 from __future__ import annotations
@@ -31,6 +38,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import cli  # noqa: E402
 import plot  # noqa: E402
 
 # The rung's verdict rule, stated before its runs finished (EXPERIMENTS.md, "published curve"): our
@@ -75,17 +83,18 @@ def source_commit(folder: str) -> str:
 
 
 def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
-    """{method: {seed: run}} of the runs on `task`; each run as plot.load_run gives it, plus its
-    wall time at its last evaluation. Runs that have not evaluated yet are kept with no frames."""
+    """{method: {seed: run}} of the runs on `task`; each run as plot.load_run gives it, plus the wall
+    time at each evaluation ("walls"). Runs that have not evaluated yet are kept with no frames."""
     ours = {}
     for d in plot.find_runs(paths):
         try:
             run = plot.load_run(d)
-            run["wall_time"] = plot.load_run(d, "eval", "wall_time")["values"][-1]
+            wall = plot.load_run(d, "eval", "wall_time")
+            run["walls"] = [dict(zip(wall["frames"], wall["values"])).get(f) for f in run["frames"]]
         except plot.NoLogYet:  # started, not evaluated yet: in the table all the same
             with open(os.path.join(d, "config.json")) as f:
                 run = {"dir": d, "config": json.load(f), "frames": np.array([]), "values": np.array([]),
-                       "wall_time": None}
+                       "walls": []}
         if plot.task_key(plot.env_of(run)) != task:
             continue
         method, seed = str(run["config"].get("method")), int(run["config"].get("seed", 0))
@@ -94,8 +103,6 @@ def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
         if seed in ours.get(method, {}):
             raise CurveError(f"two runs of {method} seed {seed} on {task}: {ours[method][seed]['dir']} and {d}")
         ours.setdefault(method, {})[seed] = run
-    if not ours:
-        raise CurveError(f"no runs on {task} in {' '.join(paths)}")
     return ours
 
 
@@ -120,23 +127,106 @@ def load_official(paths: list[str], task: str) -> dict[int, dict]:
             fields = dict(re.findall(r"^(seed|task_name|num_train_frames): *(\S+)", text, re.MULTILINE))
             if plot.task_key(fields.get("task_name", "")) != task:
                 continue
-            seed, frames, values, wall = int(fields.get("seed", 0)), [], [], None
+            seed, frames, values, walls = int(fields.get("seed", 0)), [], [], []
             eval_path = os.path.join(d, "eval.csv")
             if os.path.exists(eval_path):
                 with open(eval_path, newline="") as f:
                     for row in csv.DictReader(f):
                         frames.append(float(row["frame"]))
                         values.append(float(row["episode_reward"]))
-                        wall = float(row["total_time"])
+                        walls.append(float(row["total_time"]))
             order = np.argsort(frames, kind="stable")
             if seed in runs:
                 raise CurveError(f"two official runs of seed {seed} on {task}: {runs[seed]['dir']} and {d}")
             runs[seed] = {"dir": d, "config": {"method": OFFICIAL, "seed": seed,
                                               "frames": float(fields.get("num_train_frames", 0))},
-                          "frames": np.array(frames)[order], "values": np.array(values)[order], "wall_time": wall}
+                          "frames": np.array(frames)[order], "values": np.array(values)[order],
+                          "walls": [walls[i] for i in order]}
     if not runs:
         raise CurveError(f"--official: no runs of the official code on {task} in {' '.join(paths)}")
     return runs
+
+
+RESULT_FIELDS = ["method", "seed", "task", "frame", "return", "wall_time", "source"]
+AGREE = 0.05  # returns of one run read twice: a results file may hold them rounded to 0.1
+
+
+def load_results(path: str, task: str) -> dict[str, dict[int, dict]]:
+    """{method: {seed: run}} of a results file's rows on `task`, in the shape load_ours gives; a run's
+    "dir" is its rows' source (the run dir it was recorded from, or where its numbers were read)."""
+    runs, rows = {}, {}
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in RESULT_FIELDS if c not in (reader.fieldnames or [])]
+            if missing:
+                raise CurveError(f"--results {path}: no {', '.join(missing)} column (a results file has "
+                                 f"{', '.join(RESULT_FIELDS)})")
+            for row in reader:
+                if plot.task_key(row["task"]) != task:
+                    continue
+                try:
+                    key = (row["method"], int(row["seed"]))
+                    wall = float(row["wall_time"]) if row["wall_time"] else None
+                    rows.setdefault(key, {})[float(row["frame"])] = (float(row["return"]), wall, row["source"])
+                except ValueError:
+                    raise CurveError(f"--results {path}: bad row {row}") from None
+    except OSError as e:
+        raise CurveError(f"--results {path}: {e.strerror or e}") from None
+    for (method, seed), points in rows.items():
+        frames = sorted(points)
+        runs.setdefault(method, {})[seed] = {
+            "dir": points[frames[-1]][2], "config": {"method": method, "seed": seed, "frames": frames[-1],
+                                                     "recorded": True},
+            "frames": np.array(frames), "values": np.array([points[f][0] for f in frames]),
+            "walls": [points[f][1] for f in frames], "sources": [points[f][2] for f in frames]}
+    return runs
+
+
+def merge_runs(recorded: dict, live: dict) -> dict:
+    """The runs of both, a live run dir's over the same method and seed's recorded run: one run read
+    twice (a resume or a deterministic restart evaluates the same returns), so the returns must agree
+    where both have a frame; frames only the record has are kept."""
+    merged = {m: dict(runs) for m, runs in recorded.items()}
+    for method, runs in live.items():
+        for seed, run in runs.items():
+            old = merged.setdefault(method, {}).get(seed)
+            merged[method][seed] = run
+            if old is None:
+                continue
+            for frame, value in zip(old["frames"], old["values"]):
+                now = value_at(run, frame)
+                if now is not None and abs(now - value) > AGREE:
+                    raise CurveError(f"{method} seed {seed}: {run['dir']} returns {now:.1f} at {frame:.0f} frames, "
+                                     f"the results file {value:.1f} ({old['dir']}): another run of that seed")
+            points = {f: (v, w, old["sources"][i]) for i, (f, v, w) in
+                      enumerate(zip(old["frames"], old["values"], old["walls"]))}
+            points.update({f: (v, w, run["dir"]) for f, v, w in zip(run["frames"], run["values"], run["walls"])})
+            frames = sorted(points)
+            run.update(frames=np.array(frames), values=np.array([points[f][0] for f in frames]),
+                       walls=[points[f][1] for f in frames], sources=[points[f][2] for f in frames])
+            run["config"] = {**run["config"], "frames": max(run["config"].get("frames", 0), frames[-1])}
+    return merged
+
+
+def record_results(path: str, runs: dict, task: str):
+    """Write every run's evaluations on `task` into the results file, keeping its rows of other tasks."""
+    kept = []
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            kept = [row for row in csv.DictReader(f) if plot.task_key(row["task"]) != task]
+    rows = kept + [{"method": m, "seed": s, "task": task, "frame": f"{f:.0f}", "return": repr(float(v)),
+                    "wall_time": "" if w is None else f"{w:.0f}", "source": src}
+                   for m, seeds in sorted(runs.items()) for s, r in sorted(seeds.items())
+                   for f, v, w, src in zip(r["frames"], r["values"], r["walls"],
+                                           r.get("sources") or [r["dir"]] * len(r["frames"]))]
+
+    def write(f):
+        w = csv.DictWriter(f, RESULT_FIELDS, lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+    cli.write_atomically(path, write, "w")
+    return len(rows) - len(kept)
 
 
 def value_at(run: dict, frame: float) -> float | None:
@@ -150,6 +240,8 @@ def seed_cell(run: dict | None, frame: float) -> str:
     value = value_at(run, frame)
     if value is not None:
         return f"{value:.1f}"
+    if run["config"].get("recorded"):  # from a results file alone: whether it goes on is not known here
+        return "not recorded"
     return "in progress" if run["config"].get("frames", 0) >= frame else "-"
 
 
@@ -222,7 +314,8 @@ def wall_time_table(ours) -> str:
     for m, runs in sorted(ours.items()):
         for s, r in sorted(runs.items()):
             last = f"{r['frames'][-1]:.0f}" if len(r["frames"]) else "none yet"
-            wall = "" if r["wall_time"] is None else f"{r['wall_time'] / 3600:.2f} h"
+            walls = [w for w in r["walls"] if w is not None]  # counted on across resumes: the largest is the last
+            wall = f"{max(walls) / 3600:.2f} h" if walls else ""
             lines.append(f"| {r['dir']} | {m} | {s} | {last} | {wall} |")
     return "\n".join(lines)
 
@@ -270,7 +363,7 @@ def figure(ours, ref, methods, out: str, task: str, commit: str):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("runs", nargs="+", help="run directories, folders of runs, or globs")
+    p.add_argument("runs", nargs="*", help="run directories, folders of runs, or globs")
     p.add_argument("--published", required=True, metavar="PATH",
                    help="a drqv2 checkout, a folder of its dmc_<task>.csv files, or one such CSV")
     p.add_argument("--task", default="cartpole_balance_sparse",
@@ -281,6 +374,9 @@ def main(argv=None) -> int:
                    help="table rows; those beyond every run's budget are left out")
     p.add_argument("--official", nargs="+", default=[], metavar="DIR",
                    help="run dirs (or globs) of the official drqv2 train.py on this machine: one more method")
+    p.add_argument("--results", metavar="CSV", help="a results file: evaluations of runs whose dirs are gone")
+    p.add_argument("--record", action="store_true",
+                   help="write every run's evaluations into --results (made if missing)")
     p.add_argument("--out", default="published_curve.png", help="PNG to write")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = p.parse_args(argv)
@@ -293,21 +389,29 @@ def main(argv=None) -> int:
         if task not in curves:
             raise CurveError(f"{csv_path} has no curve of {task} (has {', '.join(sorted(curves))})")
         ref = curves[task]
-        ours = load_ours(args.runs, task)
+        if args.record and not args.results:
+            raise CurveError("--record writes into a results file: give it with --results")
+        recorded = load_results(args.results, task) if args.results and (
+            os.path.exists(args.results) or not args.record) else {}
+        ours = load_ours(args.runs, task) if args.runs else {}
         seeds = {m: args.seeds for m in args.methods}
         methods = list(args.methods)
-        for m in sorted(ours):  # runs sampled as the official loader samples, beside the method they vary
-            if m.endswith(LOADER) and m not in methods:
-                methods.append(m)
-                seeds[m] = sorted(ours[m])
         if args.official:
             ours[OFFICIAL] = load_official(args.official, task)
-            methods.append(OFFICIAL)
-            seeds[OFFICIAL] = sorted(ours[OFFICIAL])
+        ours = merge_runs(recorded, ours)
+        if not ours:
+            raise CurveError(f"no runs on {task} in {' '.join(args.runs + args.official + [args.results or ''])}".strip())
+        for m in sorted(ours):  # the official code's runs (given now or recorded): one more method, last
+            if m not in methods and (m == OFFICIAL or m.endswith(LOADER)):
+                methods.append(m)
+                seeds[m] = sorted(ours[m])
+        if OFFICIAL in methods:
+            methods.append(methods.pop(methods.index(OFFICIAL)))
         budget = max(r["config"].get("frames", 0) for runs in ours.values() for r in runs.values())
         frames = [f for f in args.frames if f <= budget]
         figure(ours, ref, methods, args.out, task, commit)
-    except (CurveError, plot.PlotError) as e:
+        recorded_rows = record_results(args.results, ours, task) if args.record else None
+    except (CurveError, plot.PlotError, cli.StorageError) as e:
         print(f"published_curve.py: error: {e}", file=sys.stderr)
         return 2
     print(f"published: {csv_path}, facebookresearch/drqv2 commit {commit}\n")
@@ -322,6 +426,8 @@ def main(argv=None) -> int:
     print()
     print(wall_time_table(ours))
     print(f"\nwrote {args.out}")
+    if recorded_rows is not None:
+        print(f"recorded {recorded_rows} evaluations of {task} in {args.results}")
     return 0
 
 

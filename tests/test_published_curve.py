@@ -194,3 +194,56 @@ def test_official_dir_that_is_no_official_run_is_one_line(tmp_path, published, c
     code, _, err = run_main(capsys, runs, "--published", published, "--out", tmp_path / "fig.png",
                             "--official", runs)
     assert code == 2 and err.count("\n") == 1 and "not a run of the official code" in err, err
+
+
+def test_recorded_results_outlive_the_run_dirs(tmp_path, published, capsys):
+    """--record writes every run's evaluations into the results file; with the run dirs gone, the
+    file alone gives the same table and verdict, and a run dir that goes on from a recorded run (the
+    same returns where both have a frame) extends it."""
+    import shutil
+    runs, results = tmp_path / "runs", tmp_path / "results.csv"
+    for seed in (1, 2):
+        make_run(runs, "cartpole-balance_sparse", "drq", seed, frames=FRAMES, base=860.0)
+    d = make_run(runs, "cartpole-balance_sparse", "drq", 3, frames=(0, 10000), base=860.0)
+    (d / "config.json").write_text('{"env": "cartpole-balance_sparse", "method": "drq", "seed": 3, "frames": 40000}')
+    make_official_run(runs, 1, frames=(0, 10000))
+    results.write_text("method,seed,task,frame,return,wall_time,source\n"
+                       "drq,1,walker_stand,0,5.0,,another rung\n")  # another task's rows are kept
+    code, before, err = run_main(capsys, runs, "--official", runs / "official-1", "--published", published,
+                                 "--results", results, "--record", "--out", tmp_path / "a.png")
+    assert code == 0, err
+    assert "recorded 14 evaluations of cartpole_balance_sparse" in before
+    shutil.rmtree(runs)
+    code, after, err = run_main(capsys, "--published", published, "--results", results, "--out", tmp_path / "b.png")
+    assert code == 0, err
+    assert table_row(after, "10k") == table_row(before, "10k")
+    assert table_row(after, "40k")[:4] == table_row(before, "40k")[:4]
+    assert table_row(before, "40k")[4] == "in progress" and table_row(after, "40k")[4] == "not recorded"
+    assert "verdict: pending (2 of 3 seeds have evaluated at 40000)" in after
+    assert "the same rule on drqv2 official: pending" in after
+    assert "drq,1,walker_stand,0,5.0,,another rung" in results.read_text()
+    # seed 3 resumed on another machine from the recorded evaluations: its new run dir goes on to 40k
+    make_run(runs, "cartpole-balance_sparse", "drq", 3, frames=(10000, 20000, 30000, 40000), base=860.0)
+    code, out, err = run_main(capsys, runs, "--published", published, "--results", results, "--record",
+                              "--out", tmp_path / "c.png")
+    assert code == 0, err
+    assert table_row(out, "0")[4] == "890.0" and table_row(out, "40k")[4] == "930.0"
+    assert "verdict: MATCH (seed 1 910.0, seed 2 920.0, seed 3 930.0)" in out
+    assert sum(line.startswith("drq,3,cartpole_balance_sparse,") for line in results.read_text().splitlines()) == 5
+
+
+@pytest.mark.parametrize("breakage", ["another run of the seed", "no columns", "record without results"])
+def test_bad_results_file_is_one_line_and_leaves_it_whole(tmp_path, published, capsys, breakage):
+    runs, results = tmp_path / "runs", tmp_path / "results.csv"
+    make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES, base=860.0)  # 870 at frame 0
+    results.write_text({"another run of the seed": "method,seed,task,frame,return,wall_time,source\n"
+                                                   "drq,1,cartpole_balance_sparse,0,99.0,,old machine\n",
+                        "no columns": "frame,return\n0,1.0\n"}.get(breakage, ""))
+    before = results.read_text()
+    argv = [runs, "--published", published, "--out", tmp_path / "fig.png", "--record"]
+    argv += [] if breakage == "record without results" else ["--results", results]
+    code, _, err = run_main(capsys, *argv)
+    assert code == 2 and err.count("\n") == 1 and err.startswith("published_curve.py: error:"), err
+    assert {"another run of the seed": "another run of that seed", "no columns": "no method, seed, task",
+            "record without results": "give it with --results"}[breakage] in err
+    assert results.read_text() == before
