@@ -33,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import cli  # noqa: E402
+import plot  # noqa: E402
 
 
 def fail(message):
@@ -332,18 +333,19 @@ def actor_rows(run_dir, action_repeat):
                     last[int(step)] = (float(sat), float(spread))
                 except ValueError:
                     fail(f"'{probe}': a row is not step,saturated,spread: {line.strip()!r}")
+        if not last:
+            fail(f"'{probe}' has no rows (the official run stopped before its first update)")
         steps = sorted(last)
-        values = np.array([last[s] for s in steps]).reshape(-1, 2)
+        values = np.array([last[s] for s in steps])
         return (f"official ({os.path.basename(os.path.normpath(run_dir))})",
                 np.array(steps) * action_repeat, values[:, 0], values[:, 1])
     if not os.path.isfile(ours):
         fail(f"'{run_dir}' has neither actor.csv (an official run with the probe) nor train.csv (our run)")
-    with open(ours) as f:
-        rows = [r for r in csv.DictReader(f) if r.get("actor_saturated")]
-    if not rows:
-        fail(f"'{ours}' has no actor_saturated values (an official run without the probe's actor.csv, or ours before its first update)")
-    return (run_label(run_dir), np.array([int(r["frame"]) - 1 for r in rows]),
-            np.array([float(r["actor_saturated"]) for r in rows]), np.array([float(r["action_spread"]) for r in rows]))
+    try:  # rows with a value (none before the first update); a frame repeated by a resume keeps its last row
+        sat, spread = (plot.load_run(run_dir, "train", m) for m in ("actor_saturated", "action_spread"))
+    except plot.PlotError as e:
+        fail(f"'{run_dir}': {e}")
+    return run_label(run_dir), sat["frames"] - 1, sat["values"], spread["values"]
 
 
 def compare_saturation(args):

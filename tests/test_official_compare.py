@@ -110,13 +110,30 @@ def test_saturation_table_puts_the_official_probe_beside_our_train_csv(tmp_path)
     assert "| 2k–3k | 0.25 / 0.375 |  |" in r.stdout and "| 4k–5k |  | 0.50 / 0.1 |" in r.stdout
 
 
+def test_saturation_of_a_resumed_run_counts_a_repeated_frame_once(tmp_path):
+    """A resume repeats the episodes after its snapshot in train.csv: the rows written last count."""
+    ours = tmp_path / "drq-5"
+    ours.mkdir()
+    (ours / "config.json").write_text('{"method": "drq", "seed": 5}')
+    with open(ours / "train.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "step", "actor_saturated", "action_spread"])
+        w.writerows([[5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.9], [6000, 3000, 0.0, 0.3]])
+    r = run(SCRIPT, "saturation", ours, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "| 4k–6k | 0.25 / 0.2 |" in r.stdout
+
+
 @pytest.mark.parametrize("case", ["official run without buffer", "our run without buffer", "no run dir",
                                   "no checkout", "loader without checkout", "no such check",
-                                  "saturation without actor data", "saturation block 0"])
+                                  "saturation without actor data", "saturation block 0",
+                                  "saturation from an empty probe"])
 def test_bad_input_is_one_line_exit_2(tmp_path, case):
     empty = tmp_path / "empty"
     empty.mkdir()
     official = official_run(tmp_path / "official", [([1.0], [1.0])])
+    (empty_probe := tmp_path / "official-killed").mkdir()
+    (empty_probe / "actor.csv").write_text("")  # killed before its first update
     args = {"official run without buffer": ["replay", empty, our_run(tmp_path / "ours", [([1.0], [1.0])])],
             "our run without buffer": ["replay", official, empty],
             "no run dir": ["policy", tmp_path / "missing"],
@@ -124,7 +141,8 @@ def test_bad_input_is_one_line_exit_2(tmp_path, case):
             "loader without checkout": ["loader", "--official", empty],
             "no such check": ["everything"],
             "saturation without actor data": ["saturation", empty],
-            "saturation block 0": ["saturation", official, "--block", "0"]}[case]
+            "saturation block 0": ["saturation", official, "--block", "0"],
+            "saturation from an empty probe": ["saturation", empty_probe]}[case]
     r = run(SCRIPT, *args, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.startswith("official_compare.py: ") and r.stderr.count("\n") == 1, r.stderr
