@@ -90,7 +90,8 @@ def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
         try:
             run = plot.load_run(d)
             wall = plot.load_run(d, "eval", "wall_time")
-            run["walls"] = [dict(zip(wall["frames"], wall["values"])).get(f) for f in run["frames"]]
+            wall_at = dict(zip(wall["frames"], wall["values"]))
+            run["walls"] = [wall_at.get(f) for f in run["frames"]]
         except plot.NoLogYet:  # started, not evaluated yet: in the table all the same
             with open(os.path.join(d, "config.json")) as f:
                 run = {"dir": d, "config": json.load(f), "frames": np.array([]), "values": np.array([]),
