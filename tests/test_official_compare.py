@@ -87,19 +87,26 @@ def test_policy_reproduces_the_runs_evaluation_and_samples(tmp_path):
     assert "| 0–4 | 0 / 1.00 / 1.00 / 0.00 | " in r.stdout
 
 
+def actor_run(root, seed, rows):
+    """Our drq run dir with train.csv rows (frame, step, actor_saturated, action_spread)."""
+    ours = root / f"drq-{seed}"
+    ours.mkdir()
+    (ours / "config.json").write_text(f'{{"method": "drq", "seed": {seed}}}')
+    with open(ours / "train.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "step", "actor_saturated", "action_spread"])
+        w.writerows(rows)
+    return ours
+
+
 def test_saturation_table_puts_the_official_probe_beside_our_train_csv(tmp_path):
     """Per block of frames: the official probe's per-update rows (a resumed step's last row counts;
     frame = step x action repeat) beside our episodes' means (an episode in the block it ran in)."""
     official = tmp_path / "official-1"
     official.mkdir()
     (official / "actor.csv").write_text("2000,0.0,0.5\n2100,1.0,0.0\n2100,0.5,0.25\n")
-    ours = tmp_path / "drq-4"
-    ours.mkdir()
-    (ours / "config.json").write_text('{"method": "drq", "seed": 4}')
-    with open(ours / "train.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "step", "actor_saturated", "action_spread"])
-        w.writerows([[1000, 500, "", ""], [5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.3], [7000, 3500, 0.0, 0.2]])
+    ours = actor_run(tmp_path, 4, [[1000, 500, "", ""], [5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.3],
+                                   [7000, 3500, 0.0, 0.2]])
     r = run(SCRIPT, "saturation", official, ours, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "| frames | official (official-1) | drq seed 4 |" in r.stdout
@@ -112,13 +119,7 @@ def test_saturation_table_puts_the_official_probe_beside_our_train_csv(tmp_path)
 
 def test_saturation_of_a_resumed_run_counts_a_repeated_frame_once(tmp_path):
     """A resume repeats the episodes after its snapshot in train.csv: the rows written last count."""
-    ours = tmp_path / "drq-5"
-    ours.mkdir()
-    (ours / "config.json").write_text('{"method": "drq", "seed": 5}')
-    with open(ours / "train.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "step", "actor_saturated", "action_spread"])
-        w.writerows([[5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.9], [6000, 3000, 0.0, 0.3]])
+    ours = actor_run(tmp_path, 5, [[5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.9], [6000, 3000, 0.0, 0.3]])
     r = run(SCRIPT, "saturation", ours, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "| 4k–6k | 0.25 / 0.2 |" in r.stdout
