@@ -21,7 +21,6 @@ Nothing is written; every line printed is a measurement. The official code is re
 (bring it with `git clone`; this project ships none of it); it needs hydra-free modules only (dmc.py).
 """
 import argparse
-import csv
 import glob
 import json
 import os
