@@ -26,11 +26,17 @@ def run(args, tmp_path, timeout=600):
                           capture_output=True, text=True, timeout=timeout, cwd=tmp_path, env=env)
 
 
+def _sigint_default():
+    """A suite started in the background (`cmd &`, nohup) hands its children SIGINT ignored: undo that."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def interrupt_when(args, tmp_path, line_pattern, timeout=120):
     """Start sear.py, send SIGINT (Ctrl-C) once a stdout line matches, return (code, stdout, stderr)."""
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     p = subprocess.Popen([sys.executable, str(ROOT / "sear.py"), "--run-root", str(tmp_path / "runs"), *args],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env,
+                         preexec_fn=_sigint_default)
     seen, deadline = [], time.time() + timeout
     try:
         for line in p.stdout:
