@@ -4,8 +4,8 @@ them, resume and its side files, one owner at a time, atomic writes and storage 
 what a Ctrl-C or SIGTERM leaves), the progress line, the evaluation's decoder metrics and videos,
 --evaluate's scores, the background sampler, and transfer (--init-from).
 
-Layering: imports cli.py, segment.py and (lazily) envs.py; never sear.py, whose agent, buffer and
-config it receives as arguments.
+Layering: imports cli.py, and lazily envs.py and segment.py (so that `import sear` needs only torch,
+numpy and the standard library); never sear.py, whose agent, buffer and config it receives as arguments.
 """
 from __future__ import annotations
 
@@ -29,7 +29,6 @@ import torch.nn.functional as F
 
 import cli
 from cli import storing, torch_save, write_atomically
-import segment  # the learned mask source; it imports envs only when collecting frames
 
 
 # ================================================================================================
@@ -40,6 +39,7 @@ def load_mask_model(cfg):
     file is a ConfigError, raised before any run directory exists."""
     if cfg.mask_source == "sim":
         return None
+    import segment  # the learned mask source (gymnasium, PIL): only when a run uses it
     try:
         model = segment.load_model(cfg.mask_source[len("learned:"):])
     except segment.SegmentError as e:
@@ -79,9 +79,15 @@ def make_envs(cfg, uses_mask: bool, train=True):
     train_env = make_run_env(cfg, "train", uses_mask and mask_model is None, mask_model) if train else None
     eval_env = make_run_env(cfg, "eval", uses_mask and (mask_model is None or cfg.learned_mask_iou), mask_model)
     cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
-    if mask_model is not None and cfg.learned_mask_iou:
+    if measures_learned_iou(cfg):
+        import segment
         eval_env = segment.LearnedMaskIoU(eval_env)
     return train_env, eval_env
+
+
+def measures_learned_iou(cfg) -> bool:
+    """Whether the eval env is a segment.LearnedMaskIoU (its pop() gives the learned masks' IoU)."""
+    return cfg.mask_source != "sim" and cfg.learned_mask_iou
 
 
 def make_run_env(cfg, split: str, render_mask: bool, mask_model=None, **overrides):
@@ -306,7 +312,7 @@ def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate
     try:
         episodes = evaluate(agent, watch, cfg, step)
         scores = watch.finish()
-        if isinstance(env, segment.LearnedMaskIoU):
+        if measures_learned_iou(cfg):
             scores["learned_mask_iou"] = env.pop()
     except BaseException as e:
         if video:  # our own new file, unfinished: never leave half a video in the run
@@ -709,8 +715,7 @@ class Counters:
     """Where the training loop stands: what a snapshot records so that a resume continues from it."""
     step: int = 0               # agent steps taken (frames = steps x action repeat)
     episode: int = 0            # number of the episode under way, or of the next one
-    next_eval: int = 0          # frame of the next scheduled evaluation
-    last_eval_frame: int = -1   # frame of the latest evaluation
+    last_eval_frame: int = -1   # frame of the latest evaluation (the loop's schedule follows from it)
     mid_episode: bool = False   # an episode has begun and not ended
 
 
@@ -722,8 +727,9 @@ class RunDir:
     directory (RunLock) from before its first write to the end of the `with` block; a first SIGTERM
     in the block waits for a safe point: create(), or safe_point() at an episode end.
 
-    Snapshots are taken between episodes (when --snapshot-minutes have passed since the last), on a
-    Ctrl-C there, and after the final evaluation. A snapshot holds the agent, the RNG states, the
+    The loop (sear.train) decides when to evaluate and to snapshot (between episodes, every
+    --snapshot-minutes); RunDir writes what it is handed, and snapshots on its own only on a Ctrl-C
+    between episodes and after the final evaluation. A snapshot holds the agent, the RNG states, the
     counters and, beside it, the replay buffer; the next episode's reset seed follows from its number,
     so a resume (with --save-buffer) does exactly what the uninterrupted run would have done."""
 
@@ -790,7 +796,6 @@ class RunDir:
         self.start_time = time.time() - wall_time
         self.counters = counters
         self.progress.restart_window(self.frame)
-        self.last_snapshot_time = time.time()
         return counters
 
     def restore(self) -> tuple[Counters, float]:
@@ -801,9 +806,10 @@ class RunDir:
         set_rng_state(state["rng"])
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]
-        # Only the end-of-budget snapshot can cut an episode: drop its rest.
-        counters = Counters(c["step"], c["episode"] + (1 if c["mid_episode"] else 0), c["next_eval"],
-                            c.get("last_eval_frame", -1))
+        # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the loop
+        # owned its schedule saved the next evaluation's frame instead of the last one's.
+        counters = Counters(c["step"], c["episode"] + (1 if c["mid_episode"] else 0),
+                            c.get("last_eval_frame", c.get("next_eval", 0) - 1))
         buffer_path = os.path.join(self.path, "buffer.npz")
         if not (os.path.exists(buffer_path) and state.get("buffer_saved")):
             print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
@@ -814,15 +820,17 @@ class RunDir:
         frame = counters.step * cfg.action_repeat
         set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
         # A snapshot taken at an episode end precedes that frame's evaluation: the resumed run
-        # evaluates again from next_eval on, so rows from there go aside too.
-        set_aside_rows_after(os.path.join(self.path, "eval.csv"), min(frame, counters.next_eval - 1))
+        # evaluates again from its next evaluation on, so rows from there go aside too.
+        set_aside_rows_after(os.path.join(self.path, "eval.csv"), min(frame, self.next_eval(counters) - 1))
         print(f"resumed at frame {frame}, episode {counters.episode}")
         return counters, c["wall_time"]
 
-    # --- snapshots ---
-    def snapshot_due(self) -> bool:
-        return time.time() - self.last_snapshot_time >= 60 * self.run.snapshot_minutes
+    def next_eval(self, counters=None) -> int:
+        """The frame of the next scheduled evaluation: the first multiple of --eval-every after the last."""
+        last = (counters or self.counters).last_eval_frame
+        return (last // self.cfg.eval_every + 1) * self.cfg.eval_every
 
+    # --- snapshots ---
     def snapshot(self):
         """A snapshot between episodes, off the training-speed clock."""
         began = time.time()
@@ -840,7 +848,7 @@ class RunDir:
         if self.run.save_buffer:
             save_buffer(self.buffer, os.path.join(self.path, "buffer.npz"))
         save_snapshot(self.path, payload)
-        self.snapshot_frame, self.last_snapshot_time = self.frame, time.time()
+        self.snapshot_frame = self.frame
 
     def finish(self) -> str:
         """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the path."""
@@ -910,7 +918,7 @@ class RunDir:
     def show_step(self, ep_len):
         self.progress.measure(self.frame)
         self.progress.update(self.frame, f"ep {self.counters.episode} step {ep_len}",
-                             self.progress.eta(self.frame, self.counters.next_eval))
+                             self.progress.eta(self.frame, self.next_eval()))
 
     def log_episode(self, ep_return, ep_len, ep_success, info):
         """A train.csv row (and TensorBoard scalars) for the episode that just ended."""
@@ -929,7 +937,7 @@ class RunDir:
             self.writer.add_scalar("train/return", ep_return, frame)
             for k, v in means.items():
                 self.writer.add_scalar(f"train/{k}", v, frame)
-        progress.update(frame, f"ep {episode} return {ep_return:.1f}", progress.eta(frame, self.counters.next_eval),
+        progress.update(frame, f"ep {episode} return {ep_return:.1f}", progress.eta(frame, self.next_eval()),
                         force=True)
         progress.restart_window(frame)
         self.metrics = {}
@@ -947,18 +955,17 @@ class RunDir:
     def show_eval(self, episode, t):
         """The progress line during an evaluation (sear.evaluate's on_step)."""
         self.progress.update(self.frame, f"eval {episode + 1}/{self.eval_episodes} step {t}",
-                             self.progress.eta(self.frame, self.counters.next_eval, episode / self.eval_episodes,
+                             self.progress.eta(self.frame, self.next_eval(), episode / self.eval_episodes,
                                                time.time() - self.eval_began))
 
     def log_eval(self, episodes):
-        """An eval.csv row (and TensorBoard scalars) for sear.evaluate()'s episodes; moves the
-        counters' evaluation schedule on."""
+        """An eval.csv row (and TensorBoard scalars) for sear.evaluate()'s episodes."""
         c, frame, progress = self.counters, self.frame, self.progress
         scores = self.watch.finish()
         progress.eval_seconds.append(time.time() - self.eval_began)
         row = {"frame": frame, "step": c.step, "episode": c.episode, "return": float(np.mean([e.ret for e in episodes])),
                "wall_time": round(time.time() - self.start_time, 2), **eval_columns(episodes), **scores}
-        if isinstance(self.watch.env, segment.LearnedMaskIoU):  # the mask model's IoU on these episodes' frames
+        if measures_learned_iou(self.cfg):  # the mask model's IoU on these episodes' frames
             row["learned_mask_iou"] = scores["learned_mask_iou"] = self.watch.env.pop()
         self.eval_log.write(row)
         if self.writer:
@@ -969,7 +976,4 @@ class RunDir:
                      + (f", success {row['success']:.2f}" if "success" in row else "")
                      + "".join(f", {name} {value:.3g}" for name, value in scores.items())
                      + f" ({progress.eval_seconds[-1]:.1f} s)")
-        c.last_eval_frame = frame
-        while c.next_eval <= frame:
-            c.next_eval += self.cfg.eval_every
         progress.pause(time.time() - self.eval_began)

@@ -1,47 +1,36 @@
 """SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023).
 
 DrQ-v2 (DDPG from pixels: random-shift augmentation, n-step returns, clipped double-Q, linearly
-decaying exploration noise) whose image encoder is also trained by two decoders. The encoder's
-latent is split in two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the
-other reconstructs the image (Eq. 5); the total loss is Eq. 6,
+decaying exploration noise) whose image encoder is also trained by two decoders on a latent split in
+two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
+the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
+c2 = 0.0025). The paper's baselines are the same agent with another auxiliary loss (one seam,
+`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit.
 
-    L = L_critic + c1 * L_recon + c2 * L_mask,    c1 = 0.01, c2 = 0.0025.
-
-The baselines of the paper are the same agent with another auxiliary loss (one seam, `AuxLoss`):
-drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit.
-
-This file is the algorithm and its training loop, in reading order: 1. Config, 2. Networks,
-3. Augmentation, 4. Auxiliary losses and the METHODS table, 5. Agent, 6. Replay buffer,
-7. Evaluation, 8. Training loop. Around it: experiment.py (envs from a config, the run directory
-with its logs and snapshots, progress, evaluation metrics and videos) and cli.py (the flags,
-recipes and checks, RunConfig, device and threads).
+In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
+6. Replay buffer, 7. Evaluation, 8. Training loop. Around it: experiment.py (envs, the run directory,
+logs, snapshots, progress, evaluation metrics) and cli.py (flags, recipes, checks, device, threads).
 
 Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
-        python sear.py --resume runs/<run dir>
-        python sear.py --evaluate runs/<run dir> [--save-video]            # score its snapshot, no training
-        python sear.py --env metaworld-mt10                                # multi-task, per-task evaluation
-        python sear.py --env metaworld-hammer --init-from runs/<mt10 run>  # transfer
+        python sear.py --resume runs/<run dir>     |     python sear.py --evaluate runs/<run dir>
 """
 from __future__ import annotations
 
 import copy
 import random
 import sys
+import time
 from dataclasses import dataclass
 from typing import NamedTuple
-
-import cli
-from cli import arg
-
-if __name__ == "__main__":  # glibc reads its malloc tunables at start-up: restart with them before torch loads
-    cli.reexec_with_huge_pages()
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+import cli
 import experiment
+from cli import arg
 
 
 # ================================================================================================
@@ -296,15 +285,19 @@ def summed_bce(logits, target):
 
 
 class AuxLoss(nn.Module):
-    """The seam. An auxiliary loss is built on the encoder it trains (cfg, encoder). It sees the
-    encoder, the latent of the augmented observation (which also feeds the critic), the un-augmented
-    observation, and the augmented image and mask (same shift). It returns its weighted contribution
-    to Eq. 6 and its unweighted terms for the logs. Its parameters are optimised together with the
-    encoder and the critic."""
+    """The seam. An auxiliary loss sees the latent of the augmented observation (which also feeds
+    the critic) and the augmented image and mask (same shift); baselines that need more take it as
+    keywords (`encoder`, the un-augmented `obs`). It returns its weighted contribution to Eq. 6 and
+    its unweighted terms for the logs. Its parameters are optimised together with the encoder and
+    the critic. METHODS builds it with build(cfg, encoder)."""
     metric_names: tuple[str, ...] = ()
     decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
 
-    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+    @classmethod
+    def build(cls, cfg, encoder):  # METHODS' constructor; SEAR's own takes plain arguments
+        return cls(cfg, encoder)
+
+    def forward(self, latent, obs_aug, mask_aug, **extra):
         raise NotImplementedError
 
     def decode(self, latent) -> dict:
@@ -316,18 +309,22 @@ class AuxLoss(nn.Module):
 
 
 class SearAux(AuxLoss):
-    """SEAR: z_R -> robot mask (Eq. 4), z -> image (Eq. 5). As in the authors' code, the FIRST half
-    of the latent is z (reconstruction) and the SECOND half is z_R (mask)."""
+    """SEAR: z_R -> robot mask (Eq. 4), z -> image (Eq. 5), weighted c1 and c2 (Eq. 6). As in the
+    authors' code, the FIRST half of the latent is z (reconstruction) and the SECOND half is z_R (mask)."""
     metric_names = ("recon_loss", "mask_loss")
     decodes = ("mask", "recon")
     split = True
 
-    def __init__(self, cfg: Config, encoder: nn.Module):
+    def __init__(self, latent_dim: int, frame_stack: int, c1: float = 0.01, c2: float = 0.0025):
         super().__init__()
-        self.c1, self.c2 = cfg.recon_coef, cfg.mask_coef
-        dec_in = encoder.repr_dim // 2 if self.split else encoder.repr_dim
-        self.recon_decoder = Decoder(dec_in, 3 * cfg.frame_stack)
-        self.mask_decoder = Decoder(dec_in, cfg.frame_stack)
+        self.c1, self.c2 = c1, c2
+        dec_in = latent_dim // 2 if self.split else latent_dim
+        self.recon_decoder = Decoder(dec_in, 3 * frame_stack)
+        self.mask_decoder = Decoder(dec_in, frame_stack)
+
+    @classmethod
+    def build(cls, cfg, encoder):
+        return cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
 
     def decoder_inputs(self, latent):
         if not self.split:
@@ -335,7 +332,7 @@ class SearAux(AuxLoss):
         z, z_r = latent.chunk(2, dim=1)
         return z, z_r
 
-    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+    def forward(self, latent, obs_aug, mask_aug, **extra):
         z, z_r = self.decoder_inputs(latent)
         recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)
         mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
@@ -373,7 +370,7 @@ class AEAux(ReconstructionAux):
         self.c1, self.latent_lambda = 2 * cfg.recon_coef, cfg.ae_latent_lambda
         self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack, in_channels=32)
 
-    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+    def forward(self, latent, obs_aug, mask_aug, **extra):
         recon_loss = reconstruction_loss(self.recon_decoder(latent), obs_aug)
         penalty = 0.5 * latent.pow(2).sum(1).mean()
         loss = self.c1 * recon_loss + self.latent_lambda * penalty
@@ -401,7 +398,7 @@ class MAEAux(ReconstructionAux):
         self.c1, self.ratio, self.patch = cfg.recon_coef, cfg.mae_ratio, cfg.mae_patch
         self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack)
 
-    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+    def forward(self, latent, obs_aug, mask_aug, encoder, **extra):
         hidden = patch_mask(obs_aug.shape[0], obs_aug.shape[-1], self.patch, self.ratio, obs_aug.device)
         masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
         pred = self.recon_decoder(encoder(masked))
@@ -428,7 +425,7 @@ class CURLAux(AuxLoss):
         logits = q.float() @ self.W @ k.float().T
         return logits - logits.max(dim=1, keepdim=True).values  # stability, as CURL
 
-    def forward(self, encoder, latent, obs, obs_aug, mask_aug):
+    def forward(self, latent, obs_aug, mask_aug, encoder, obs, **extra):
         q = self.query_head(latent)
         with torch.no_grad():
             k = self.key_head(self.key_encoder(random_shift(obs)))
@@ -446,7 +443,7 @@ class CURLAux(AuxLoss):
 @dataclass(frozen=True)
 class Method:
     doc: str
-    aux: type[AuxLoss] | None = None  # built as aux(cfg, encoder); None: only the critic trains the encoder
+    aux: type[AuxLoss] | None = None  # built as aux.build(cfg, encoder); None: only the critic trains the encoder
     encoder: str = "pooled"           # "pooled" (SEAR's) or "drq" (DrQ-v2's, flattened)
     mask_input: bool = False          # DrQ-RGBM: the mask is a 4th channel of every stacked frame
     uses_mask: bool = False           # False: the env skips the segmentation render (it costs a second pass)
@@ -506,7 +503,7 @@ class Agent:
         self.actor = Actor(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
         self.critic = Critic(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.aux = self.method.aux(cfg, self.encoder).to(device) if self.method.aux else None
+        self.aux = self.method.aux.build(cfg, self.encoder).to(device) if self.method.aux else None
         # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one
         # optimiser for all of them equals DrQ-v2's separate encoder/critic optimisers.
         model_params = [*self.encoder.parameters(), *self.critic.parameters()]
@@ -574,7 +571,7 @@ class Agent:
         loss, metrics = critic_loss, {}
         if self.aux is not None:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
-                aux_loss, metrics = self.aux(self.encoder, latent, batch.obs, obs_aug, mask_aug)
+                aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
             loss = loss + aux_loss
         metrics.update(critic_loss=critic_loss.item(), q=q1.mean().item())
         return loss, latent, metrics
@@ -781,11 +778,24 @@ def seed_everything(seed):
     torch.manual_seed(seed)
 
 
+def eval_due(frame: int, last_eval_frame: int, every: int) -> bool:
+    """drqv2's Every, in frames: a multiple of `every` lies in (last evaluation, frame]. Frame 0 is
+    one (last_eval_frame starts at -1)."""
+    return frame // every > last_eval_frame // every
+
+
+def evaluate_and_log(agent: Agent, eval_env, cfg: Config, c, rundir) -> None:
+    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the counter."""
+    env = rundir.start_eval(eval_env)  # the eval env, scored by the decoders, filmed with --save-video
+    rundir.log_eval(evaluate(agent, env, cfg, c.step, on_step=rundir.show_eval))
+    c.last_eval_frame = c.step * cfg.action_repeat
+
+
 def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
     """Train from scratch, or continue from `snapshot` (the last one of the run dir run.resume);
-    returns the run directory. The experiment.RunDir writes config.json, the logs and the snapshots
-    (taken between episodes, where a resume continues exactly) and turns a Ctrl-C, a SIGTERM or a
-    storage error into one line."""
+    returns the run directory. The loop decides when to evaluate, snapshot and stop; the
+    experiment.RunDir writes config.json, the logs and the snapshots it is handed and turns a
+    Ctrl-C, a SIGTERM or a storage error into one line."""
     with experiment.RunDir(cfg, run, snapshot) as rundir:
         device = cli.torch_setup(run)
         train_env, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask)  # sets action_repeat 0
@@ -801,19 +811,19 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
         frame_shape = (3, *train_env.observation_space["pixels"].shape[1:])
         buffer = ReplayBuffer(cfg.replay_size, frame_shape, action_dim, cfg.frame_stack, cfg.nstep, cfg.discount)
         prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # None: sample here
-        c = rundir.start(agent, buffer, sample_rng)  # step, episode, eval schedule: fresh, or the snapshot's
+        c = rundir.start(agent, buffer, sample_rng)  # step, episode, last evaluation: fresh, or the snapshot's
+        snapshot_clock = time.monotonic()  # a snapshot every --snapshot-minutes, at the next episode end
 
         frame = c.step * cfg.action_repeat
-        while frame < cfg.frames:
+        while frame < cfg.frames:  # drqv2's Until, in frames
             if not c.mid_episode:
                 rundir.safe_point()  # a first SIGTERM stops the run here, between episodes (with a snapshot)
                 c.mid_episode = True
                 obs, info = train_env.reset(seed=experiment.episode_seed(cfg.seed, c.episode))
                 buffer.add_first(obs)
                 ep_return, ep_len, ep_success = 0.0, 0, False
-            if frame >= c.next_eval:
-                env = rundir.start_eval(eval_env)  # scored by the decoders, filmed with --save-video
-                rundir.log_eval(evaluate(agent, env, cfg, c.step, on_step=rundir.show_eval))
+            if eval_due(frame, c.last_eval_frame, cfg.eval_every):
+                evaluate_and_log(agent, eval_env, cfg, c, rundir)
 
             # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
             # (Agent.act), then the actor plus noise, not yet updated while the seed frames are collected.
@@ -835,17 +845,15 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
             if terminated or truncated:
                 rundir.log_episode(ep_return, ep_len, ep_success, info)  # train.csv and the progress line
                 c.episode, c.mid_episode = c.episode + 1, False
-                if frame < cfg.frames and rundir.snapshot_due():  # between episodes: a resume continues exactly
-                    rundir.snapshot()
+                if frame < cfg.frames and time.monotonic() - snapshot_clock >= 60 * run.snapshot_minutes:
+                    rundir.snapshot()  # between episodes: a resume continues exactly
+                    snapshot_clock = time.monotonic()
             else:
                 rundir.show_step(ep_len)
 
-        # The end of the budget: a last evaluation, so that eval.csv ends at the last frame, then the
-        # final snapshot.
-        if c.last_eval_frame != frame:
-            env = rundir.start_eval(eval_env)
-            rundir.log_eval(evaluate(agent, env, cfg, c.step, on_step=rundir.show_eval))
-        rundir.finish()
+        if c.last_eval_frame != frame:  # the budget ends with an evaluation at its last frame
+            evaluate_and_log(agent, eval_env, cfg, c, rundir)
+        rundir.finish()  # the final snapshot
         for closing in (prefetcher, train_env, eval_env):
             if closing is not None:
                 closing.close()
@@ -868,4 +876,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    cli.reexec_with_huge_pages()  # glibc reads its malloc tunables only at start-up: restart once with them
     sys.exit(main())

@@ -94,7 +94,7 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels(device):
             return torch.zeros_like(obs)
 
     aux.recon_decoder = Grey()
-    _, m = aux(encoder, None, obs, obs, None)
+    _, m = aux(None, obs, None, encoder=encoder)
     assert m["recon_loss"] == pytest.approx(0.25 * 9 * 37 * 144)  # hidden pixels only, 9 channels
 
 
@@ -121,7 +121,7 @@ def test_decoder_inputs_split_or_not(method, split, device):
     agent.aux.mask_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("mask", i[0]))
     latent = torch.randn(4, cfg.latent_dim, device=device)
     obs = torch.rand(4, 9, 84, 84, device=device) * 255
-    agent.aux(agent.encoder, latent, obs, obs, torch.zeros(4, 3, 84, 84, device=device))
+    agent.aux(latent, obs, torch.zeros(4, 3, 84, 84, device=device))
     half = cfg.latent_dim // 2
     if split:  # the authors' order: first half -> reconstruction (z), second half -> mask (z_R)
         assert torch.equal(seen["recon"], latent[:, :half]) and torch.equal(seen["mask"], latent[:, half:])

@@ -97,6 +97,40 @@ def test_import_sear_loads_no_plotting_video_sweep_or_tensorboard_and_cli_no_tor
     assert not {"numpy", "torch"} & loaded_after("import cli")
 
 
+def test_import_sear_needs_only_torch_numpy_and_the_standard_library():
+    """A reader's `import sear` (to take the agent into a notebook or another codebase) works where the
+    suites' packages are missing: gymnasium, PIL, scipy and mujoco cannot be imported in this process."""
+    blocked = ("gymnasium", "PIL", "scipy", "mujoco", "dm_control", "metaworld", "matplotlib", "imageio")
+    code = ("import importlib.abc, sys\n"
+            "class Block(importlib.abc.MetaPathFinder):\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            f"        if name.split('.')[0] in {blocked!r}:\n"
+            "            raise ImportError(f'blocked: {name}')\n"
+            "sys.meta_path.insert(0, Block())\n"
+            "import sear\n"
+            "agent = sear.Agent(sear.Config(method='sear', latent_dim=64, hidden_dim=32), 1, sear.torch.device('cpu'))\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & set(" + repr(blocked) + ")))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split()[-1] == "[]"
+
+
+def test_the_loop_owns_its_schedule_and_the_run_dir_only_writes():
+    """sear.train decides when to evaluate, snapshot and stop; experiment.RunDir never moves the
+    loop's counters (it is handed them to save) and keeps no clock of when to snapshot."""
+    tree = ast.parse((ROOT / "experiment.py").read_text())
+    rundir = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "RunDir")
+    moved = sorted({t.attr for node in ast.walk(rundir) if isinstance(node, (ast.Assign, ast.AugAssign))
+                    for t in (node.targets if isinstance(node, ast.Assign) else [node.target])
+                    if isinstance(t, ast.Attribute) and isinstance(t.value, ast.Name) and t.value.id == "c"})
+    assert moved == [], f"RunDir moves the loop's counters: {moved}"
+    methods = {n.name for n in rundir.body if isinstance(n, ast.FunctionDef)}
+    assert not {"snapshot_due"} & methods
+    loop = next(n for n in ast.parse(SEAR.read_text()).body if isinstance(n, ast.FunctionDef) and n.name == LOOP)
+    called = {n.func.id for n in ast.walk(loop) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+    assert "eval_due" in called
+
+
 def imports(path) -> set[str]:
     """The project modules a file imports anywhere (top level or inside a function)."""
     names = set()

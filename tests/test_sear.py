@@ -65,7 +65,7 @@ def test_mask_loss_equals_hand_computed_bce():
 
 def test_recon_loss_zero_for_perfect_reconstruction():
     cfg = small_cfg()
-    aux = sear.SearAux(cfg, sear.PooledEncoder(9, cfg.latent_dim))
+    aux = sear.SearAux(cfg.latent_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
     obs, mask = fake_batch()[:2]
 
     class Perfect(torch.nn.Module):
@@ -73,7 +73,7 @@ def test_recon_loss_zero_for_perfect_reconstruction():
             return obs / 255.0 - 0.5
 
     aux.recon_decoder = Perfect()
-    _, metrics = aux(None, torch.randn(4, cfg.latent_dim), obs, obs, mask)
+    _, metrics = aux(torch.randn(4, cfg.latent_dim), obs, mask)
     assert metrics["recon_loss"] == 0.0
     assert sear.summed_mse(obs, obs + 1.0).item() == pytest.approx(9 * 84 * 84)  # summed, not averaged
 
@@ -388,3 +388,19 @@ def test_sear_test_device_sets_the_device_fixture(name, code, says):
                        env={**os.environ, "SEAR_TEST_DEVICE": name}, capture_output=True, text=True,
                        cwd=os.path.dirname(os.path.dirname(__file__)), timeout=300)
     assert r.returncode == code and says in r.stdout, r.stdout[-2000:] + r.stderr[-2000:]
+
+
+def test_eval_due_is_the_schedule_the_run_dir_kept_before():
+    """The loop's predicate (drqv2's Every, in frames) evaluates at exactly the frames where the former
+    counter (next_eval, moved on by --eval-every past each evaluation) did, for any action repeat."""
+    for every, repeat in ((10_000, 2), (1001, 2), (16, 2), (7, 3), (5, 1)):
+        old, next_eval, new, last = [], 0, [], -1
+        for frame in range(0, 20 * every, repeat):
+            if frame >= next_eval:
+                old.append(frame)
+                while next_eval <= frame:
+                    next_eval += every
+            if sear.eval_due(frame, last, every):
+                new.append(frame)
+                last = frame
+        assert new == old and new[0] == 0, (every, repeat)
