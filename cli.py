@@ -51,7 +51,7 @@ class RunConfig:
                             "success) over --eval-episodes with confidence intervals; writes nothing, but with "
                             "--save-video a new videos/evaluate_<frame>.mp4", saved=False)
     recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code "
-                               "where the two differ: RECIPES below, README's table); explicit flags win",
+                               "where the two differ: RECIPES below, docs/recipes.md); explicit flags win",
                       ("paper", "authors"))
     save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly")
     save_video: bool = arg(False, "write each evaluation's first episode to videos/eval_<frame>.mp4: camera | true "
