@@ -1012,11 +1012,13 @@ class SEAREnv(gym.Env):
         return mask
 
     def _corrupt(self, mask: np.ndarray) -> np.ndarray:
-        """The paper's robustness ablations, applied to the mask whatever its source."""
-        if self.mask_approx:
-            mask = approximate_mask(mask)
+        """The paper's robustness ablations, applied to the mask whatever its source: pixels dropped
+        first, then the approximation, in the authors' order (NoisyMaskWrapper inside
+        SlimMaskWrapper in every sear/environments/*_dm_env.py and distracting_dmc.py)."""
         if self.mask_noise > 0:
             mask = mask & (self._rng.random(mask.shape) >= self.mask_noise)
+        if self.mask_approx:
+            mask = approximate_mask(mask)
         return mask
 
     def _obs(self):
