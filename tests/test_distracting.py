@@ -1,6 +1,6 @@
 """Distracting Control as the paper ran it: DAVIS-2017 backgrounds from the cache (`--backgrounds
 davis`), their download (`python envs.py --fetch-davis`), the original suite's split, video counts
-and whole-frame resizing.
+and whole-frame resizing, and the start-up line of the procedural default.
 
 No test touches the internet: the download is tested against an archive of the official layout,
 built here and served from 127.0.0.1.
@@ -293,3 +293,17 @@ def test_a_frame_is_resized_whole_as_the_original_suite_not_cropped(tmp_path):
     diff = np.abs(got - bilinear(smooth, 800, 800))
     assert diff.mean() < 0.5 and diff.max() <= 3, (diff.mean(), diff.max())
 
+
+def test_every_run_on_procedural_backgrounds_says_they_are_not_the_papers():
+    import cli
+    run = types.SimpleNamespace(threads=1)
+
+    def warnings(env, backgrounds):
+        cfg = types.SimpleNamespace(env=env, backgrounds=backgrounds, replay_size=10, batch_size=1, seed_frames=0,
+                                    action_repeat=2)
+        return [w for w in cli.start_warnings(cfg, run) + cli.start_warnings(cfg, run, training=False)
+                if "procedural" in w]
+    line = ("walker-walk-distracting runs on the built-in procedural backgrounds, not the paper's DAVIS-2017 "
+            "videos; for the paper's setting: python envs.py --fetch-davis, then --backgrounds davis")
+    assert warnings("walker-walk-distracting", "") == [line, line]   # training and --evaluate
+    assert warnings("walker-walk-distracting", "davis") == warnings("walker-walk", "") == []
