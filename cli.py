@@ -675,9 +675,10 @@ def default_threads():
 
 
 def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
-    """Settings that run, but not as meant: more threads than cores, a replay smaller than a batch or
-    than the seed phase (learning starts once the replay holds the seed frames' steps). After the
-    envs are made: the seed phase's steps need the suite's action repeat."""
+    """Settings that run, but not as meant: more threads than cores, Distracting Control without the
+    paper's DAVIS backgrounds, a replay smaller than a batch or than the seed phase (learning starts
+    once the replay holds the seed frames' steps). After the envs are made: the seed phase's steps
+    need the suite's action repeat."""
     warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
     if threads > cores:
         given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
@@ -686,6 +687,9 @@ def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
     if training and cfg.replay_size < cfg.batch_size:
         warnings.append(f"--replay-size {cfg.replay_size} is smaller than --batch-size {cfg.batch_size}: every "
                         f"batch holds the same transitions several times")
+    if cfg.env.endswith("-distracting") and not cfg.backgrounds:  # a default that is not the paper's: said every run
+        warnings.append(f"{cfg.env} runs on the built-in procedural backgrounds, not the paper's DAVIS-2017 videos; "
+                        "for the paper's setting: python envs.py --fetch-davis, then --backgrounds davis")
     seed_steps = cfg.seed_frames // max(1, cfg.action_repeat)
     if training and cfg.replay_size < seed_steps:
         warnings.append(f"--replay-size {cfg.replay_size} is smaller than the {seed_steps} steps of --seed-frames "

@@ -41,7 +41,12 @@ downsampled by a 3x3 majority vote (``mask_downsample="stride"`` keeps every
 3rd pixel as the authors did).  dm_control masks are rendered at the
 observation size directly.  ``mask_noise`` and ``mask_approx`` corrupt the mask
 for the paper's robustness ablations, whichever its source (simulator or
-``mask_model``).
+``mask_model``): pixels dropped first, then approximated, as the authors.
+
+Distracting Control backgrounds (``backgrounds=``): None = built-in procedural
+images (no download; not the paper's), ``"davis"`` = DAVIS-2017 480p from the
+cache (``python envs.py --fetch-davis`` downloads it; the paper's setting), or
+a folder (DAVIS or any images).  See ``Backgrounds`` and docs/distracting.md.
 
 All suites render through one path: a ``mujoco.Renderer`` on the suite's raw
 MjModel/MjData (RGB plus segmentation), so camera, shadow and multisampling
@@ -61,7 +66,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import argparse
 import atexit
 import collections
+import errno
 import functools
+import hashlib
+import shutil
 import sys
 import warnings
 import weakref
@@ -77,7 +85,7 @@ from scipy import ndimage
 __all__ = [
     "EnvError", "env_names", "default_action_repeat", "robot_name", "is_task_set", "metaworld_set_tasks", "make_env",
     "SEAREnv", "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
-    "d4rl_reward", "exploration_std_steps",
+    "d4rl_reward", "exploration_std_steps", "Backgrounds", "FetchError", "davis_cache", "fetch_davis",
 ]
 
 
@@ -170,6 +178,16 @@ DAVIS17_VAL = (
     "goat gold-fish horsejump-high india judo kite-surf lab-coat libby loading "
     "mbike-trick motocross-jump paragliding-launch parkour pigs scooter-black "
     "shooting soapbox").split()
+
+# The paper's backgrounds: DAVIS-2017 trainval 480p, the archive the original suite's README and the
+# authors' README download.  DAVIS publishes no checksum; size and SHA-256 are those TensorFlow
+# Datasets records for this URL (tensorflow/datasets tensorflow_datasets/video/davis/checksums.tsv).
+DAVIS_URL = "https://data.vision.ee.ethz.ch/csergi/share/davis/DAVIS-2017-trainval-480p.zip"
+DAVIS_BYTES = 832_766_765
+DAVIS_SHA256 = "e3d0b5b77c3d031b000a19e0e25e3e2cac65d183755601bc2cf066df1a2aa492"
+DAVIS_KEYWORD = "davis"   # --backgrounds davis: the cache below
+_DAVIS_FRAMES = Path("DAVIS", "JPEGImages", "480p")
+_DAVIS_SETS = Path("DAVIS", "ImageSets", "2017")   # train.txt / val.txt: the official split
 
 _IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".gif", ".webp", ".tif", ".tiff"}
 
@@ -409,84 +427,246 @@ class Backgrounds:
     """Background images for one split, grouped like videos.
 
     ``directory=None``: procedural images (train seeds 0.., eval seeds
-    100000..), one image per "video".  A DAVIS-2017 ``JPEGImages/480p`` folder
-    (or the DAVIS root holding it): the official train / val video lists.  Any
-    other folder: all images found recursively, grouped by their parent folder
-    (a flat folder makes every image its own group); groups are sorted and
-    every 5th group (index 4, 9, ...) is held out for ``split="eval"``; if that
-    leaves either split empty, both use all groups.  The difficulty limits the
-    number of groups as in the original suite (easy 4, medium 8, hard all; for
-    procedural images hard = 60 train / 30 eval, the DAVIS counts).  Every
-    file of the split is checked to be an image when the set is built.
+    100000..), one image per "video": not the paper's backgrounds.
+    ``"davis"``: DAVIS-2017 480p from the cache (``davis_cache()``, filled by
+    ``python envs.py --fetch-davis``); every video the split and difficulty
+    name must be there.  A DAVIS-2017 ``JPEGImages/480p`` folder (or the DAVIS
+    root holding it): the same lists, the videos present.  As the original
+    suite (``background.py``): train videos for ``split="train"``, validation
+    videos for ``"eval"``, the first 4 / 8 / all of the list for easy / medium
+    / hard.  Any other folder: all images found recursively, grouped by their
+    parent folder (a flat folder makes every image its own group); groups are
+    sorted and every 5th group (index 4, 9, ...) is held out for
+    ``split="eval"``; if that leaves either split empty, both use all groups;
+    the difficulty limits the number of groups alike (procedural hard = 60
+    train / 30 eval, the DAVIS counts).  Every file of the split is checked to
+    be an image when the set is built.
     """
 
     def __init__(self, directory: str | None, split: str, difficulty: str):
         limit = _DIFFICULTY_NUM_VIDEOS[difficulty]
-        self._cache: dict = {}
         if directory is None:
             count = limit or (len(DAVIS17_TRAIN) if split == "train" else len(DAVIS17_VAL))
             offset = 0 if split == "train" else 100_000
             self.groups = [[offset + i] for i in range(count)]
             self.source = f"procedural ({count} images)"
             return
-        root = Path(directory).expanduser()
-        if not root.is_dir():
-            raise EnvError(f"backgrounds dir {directory!r} does not exist or is not a directory")
-        davis = root / "JPEGImages" / "480p"
-        if davis.is_dir():
-            root = davis
-        subdirs = {p.name for p in root.iterdir() if p.is_dir()}
-        if subdirs & set(DAVIS17_TRAIN + DAVIS17_VAL):
-            names = DAVIS17_TRAIN if split == "train" else DAVIS17_VAL
-            groups = [sorted(p for p in (root / n).iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
-                      for n in names if n in subdirs]
-            groups = [g for g in groups if g]
-            if not groups:
-                raise EnvError(f"backgrounds dir {directory!r} looks like DAVIS but holds no "
-                               f"{'train' if split == 'train' else 'val'} videos with images")
+        names = (DAVIS17_TRAIN if split == "train" else DAVIS17_VAL)[:limit]   # the original's num_videos
+        if directory == DAVIS_KEYWORD:
+            root = davis_cache() / _DAVIS_FRAMES
+            if not root.is_dir():
+                raise EnvError(f"--backgrounds davis: no DAVIS-2017 in {davis_cache()}; get it "
+                               f"({DAVIS_BYTES / 1e6:.0f} MB) with: python envs.py --fetch-davis")
+            if missing := davis_missing(root, names):
+                raise EnvError(f"--backgrounds davis: {root} lacks {len(missing)} of the {split} videos "
+                               f"({', '.join(missing[:3])}); fetch it again: python envs.py --fetch-davis")
+            groups = [_images(root / n) for n in names]
             self.source = f"DAVIS 2017 {split} ({len(groups)} videos)"
         else:
-            images = sorted(p for p in root.rglob("*")
-                            if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
-            if not images:
-                raise EnvError(f"backgrounds dir {directory!r} holds no images "
-                               f"({', '.join(sorted(_IMAGE_SUFFIXES))})")
-            by_parent = collections.defaultdict(list)
-            for p in images:
-                by_parent[p.parent].append(p)
-            groups = ([by_parent[k] for k in sorted(by_parent)] if len(by_parent) > 1
-                      else [[p] for p in images])
-            train = [g for i, g in enumerate(groups) if i % 5 != 4]
-            held_out = [g for i, g in enumerate(groups) if i % 5 == 4]
-            if train and held_out:
-                groups = train if split == "train" else held_out
-            self.source = f"{directory} ({len(groups)} groups)"
-        self.groups = groups[:limit] if limit else groups
+            root = Path(directory).expanduser()
+            if not root.is_dir():
+                raise EnvError(f"backgrounds dir {directory!r} does not exist or is not a directory")
+            for davis in (root / _DAVIS_FRAMES, root / _DAVIS_FRAMES.relative_to("DAVIS")):
+                if davis.is_dir():   # a --fetch-davis --cache folder, or the DAVIS root
+                    root = davis
+                    break
+            subdirs = {p.name for p in root.iterdir() if p.is_dir()}
+            if subdirs & set(DAVIS17_TRAIN + DAVIS17_VAL):
+                groups = [g for g in (_images(root / n) for n in names if n in subdirs) if g]
+                if not groups:
+                    raise EnvError(f"backgrounds dir {directory!r} looks like DAVIS but holds none of the "
+                                   f"{'train' if split == 'train' else 'val'} videos {difficulty} uses")
+                self.source = f"DAVIS 2017 {split} ({len(groups)} videos)"
+            else:
+                groups = self._folder_groups(root, directory, split)[:limit]
+                self.source = f"{directory} ({len(groups)} groups)"
+        self.groups = groups
         # Fail now, not hours into a run when a broken file is first sampled.
         for path in (p for g in self.groups for p in g):
             _check_image(path)
 
+    @staticmethod
+    def _folder_groups(root: Path, directory: str, split: str) -> list:
+        images = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+        if not images:
+            raise EnvError(f"backgrounds dir {directory!r} holds no images ({', '.join(sorted(_IMAGE_SUFFIXES))})")
+        by_parent = collections.defaultdict(list)
+        for p in images:
+            by_parent[p.parent].append(p)
+        groups = [by_parent[k] for k in sorted(by_parent)] if len(by_parent) > 1 else [[p] for p in images]
+        train = [g for i, g in enumerate(groups) if i % 5 != 4]
+        held_out = [g for i, g in enumerate(groups) if i % 5 == 4]
+        if train and held_out:
+            groups = train if split == "train" else held_out
+        return groups
+
     def sample(self, rng: np.random.Generator, side: int) -> np.ndarray:
-        """A random image (random group, then random frame), uint8 (side, side, 3)."""
+        """One episode's background, uint8 (side, side, 3): a random video (group), then a random
+        frame of it, held for the whole episode: the original suite's default ``dynamic=False``,
+        which the authors keep.  The whole frame is resized (bilinear) to the square sky face, as
+        the original suite does (854x480 DAVIS frames are stretched, not cropped)."""
         group = self.groups[rng.integers(len(self.groups))]
         item = group[rng.integers(len(group))]
-        key = (item, side)
-        if key not in self._cache:
-            if isinstance(item, int):
-                img = Image.fromarray(procedural_background(item))
-            else:
-                img = Image.open(item).convert("RGB")
-                # Centre-crop to a square so the image is not stretched.
-                w, h = img.size
-                s = min(w, h)
-                img = img.crop(((w - s) // 2, (h - s) // 2, (w - s) // 2 + s, (h - s) // 2 + s))
-            arr = np.asarray(img.resize((side, side), Image.BILINEAR), dtype=np.uint8)
-            # Bound memory: procedural images are cheap to regenerate, files
-            # cheap to reload; keep at most a few dozen resized images.
-            if len(self._cache) > 64:
-                self._cache.clear()
-            self._cache[key] = arr
-        return self._cache[key]
+        if isinstance(item, int):
+            return _procedural_frame(item, side)
+        with Image.open(item) as f:
+            return _resize(f.convert("RGB"), side)
+
+
+def _images(folder: Path) -> list[Path]:
+    """A video's frames in order (the fork of the suite the authors installed sorts them too)."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+
+
+def _resize(img: Image.Image, side: int) -> np.ndarray:
+    """The whole image to (side, side, 3), bilinear: the original suite's tf.image.resize (the
+    authors' packaged fork: cv2.resize INTER_LINEAR) up to PIL's wider kernel when it shrinks
+    (854 -> 800: 0.3 grey levels apart on average on a smooth frame)."""
+    return np.asarray(img.resize((side, side), Image.BILINEAR), dtype=np.uint8)
+
+
+@functools.lru_cache(maxsize=32)
+def _procedural_frame(seed: int, side: int) -> np.ndarray:
+    """Procedural images are slow to draw and resize (~0.08 s): keep the last few (1.9 MB each at
+    the sky's 800 x 800), shared by a run's train and eval env."""
+    frame = _resize(Image.fromarray(procedural_background(seed)), side)
+    frame.setflags(write=False)
+    return frame
+
+
+# ----------------------------------------------------------------------------
+# DAVIS-2017: the cache and its download
+# ----------------------------------------------------------------------------
+
+class FetchError(EnvError):
+    """A download or unpacking failure, in one line."""
+
+
+def davis_cache() -> Path:
+    """Where ``--backgrounds davis`` looks and ``--fetch-davis`` writes by default:
+    ``$SEAR_DATA/davis``, without SEAR_DATA ``~/.cache/sear/davis``."""
+    return Path(os.environ.get("SEAR_DATA") or Path.home() / ".cache" / "sear").expanduser() / "davis"
+
+
+def davis_missing(frames: Path, names) -> list[str]:
+    """The videos among ``names`` without a JPEG frame under ``frames``."""
+    return [n for n in names if not any((frames / n).glob("*.jpg"))]
+
+
+def fetch_davis(cache: str | None = None, *, url: str = DAVIS_URL, size: int = DAVIS_BYTES,
+                sha256: str = DAVIS_SHA256, progress: bool = True) -> Path:
+    """Download DAVIS-2017 trainval 480p into ``cache`` (default ``davis_cache()``) and return its
+    frames folder (``<cache>/DAVIS/JPEGImages/480p``).  The archive goes to a ``.part`` file that a
+    later call resumes (HTTP Range); then its size and SHA-256 are checked (a mismatch deletes it),
+    its frames and split lists are unpacked, every train and validation video is checked to have
+    frames, and the archive is deleted.  A complete cache is left as it is.  Every failure is a
+    one-line FetchError, and leaves no half-unpacked folder."""
+    cache = Path(cache).expanduser() if cache else davis_cache()
+    frames = cache / _DAVIS_FRAMES
+    if (cache / "DAVIS").exists():
+        if missing := davis_missing(frames, DAVIS17_TRAIN + DAVIS17_VAL):
+            raise FetchError(f"{cache / 'DAVIS'} exists but lacks {len(missing)} of the 90 videos "
+                             f"({', '.join(missing[:3])}); move it away and run again")
+        return frames
+    part = cache / "DAVIS-2017-trainval-480p.zip.part"
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        _download(url, part, size, progress)
+        with open(part, "rb") as f:
+            digest = hashlib.file_digest(f, "sha256").hexdigest()
+        if digest != sha256:
+            part.unlink()
+            raise FetchError(f"{url}: SHA-256 {digest[:16]}... is not the official archive's {sha256[:16]}...; "
+                             "the download was deleted, run again")
+        _unpack_davis(part, cache)
+        part.unlink()
+    except OSError as e:   # disk full, no permission, ...
+        raise FetchError(f"cannot write {e.filename or cache}: {e.strerror or e}"
+                         + (" (disk full)" if e.errno == errno.ENOSPC else "")) from None
+    return frames
+
+
+def _need_space(folder: Path, nbytes: int) -> None:
+    free = shutil.disk_usage(folder).free
+    if free < nbytes:
+        raise FetchError(f"{folder} has {free / 1e6:.0f} MB free, {nbytes / 1e6:.0f} MB needed")
+
+
+def _download(url: str, part: Path, size: int, progress: bool) -> None:
+    """``url`` into ``part``, appending to what an earlier call left there (HTTP Range)."""
+    import http.client
+    import urllib.error
+    import urllib.request
+    from tqdm import tqdm
+    have = part.stat().st_size if part.exists() else 0
+    if have > size:   # not a piece of this archive
+        part.unlink()
+        have = 0
+    if have == size:
+        return
+    _need_space(part.parent, size - have)
+    request = urllib.request.Request(url, headers={"Range": f"bytes={have}-"} if have else {})
+    try:
+        response = urllib.request.urlopen(request, timeout=60)
+    except urllib.error.HTTPError as e:
+        raise FetchError(f"cannot download {url}: HTTP {e.code} {e.reason}") from None
+    except (urllib.error.URLError, OSError, http.client.HTTPException) as e:
+        raise FetchError(f"cannot reach {url}: {getattr(e, 'reason', None) or e} (no network?)") from None
+    with response:
+        if response.status != 206:   # the whole file: start again from its first byte
+            have = 0
+        length = response.headers.get("Content-Length")
+        if length is not None and have + int(length) != size:
+            raise FetchError(f"{url} is {have + int(length)} bytes, the DAVIS-2017 trainval 480p archive is "
+                             f"{size}: not that archive")
+        with open(part, "ab" if have else "wb") as f, \
+                tqdm(total=size, initial=have, unit="B", unit_scale=True, unit_divisor=1024,
+                     desc="DAVIS-2017-trainval-480p.zip", disable=not progress) as bar:
+            while True:
+                try:
+                    chunk = response.read(1 << 20)
+                except (OSError, http.client.HTTPException):   # reset, timed out, cut short
+                    break
+                if not chunk:
+                    break
+                f.write(chunk)
+                bar.update(len(chunk))
+    if (got := part.stat().st_size) != size:
+        raise FetchError(f"the download of {url} broke off at {got} of {size} bytes; run again to resume")
+
+
+def _unpack_davis(archive: Path, cache: Path) -> None:
+    """The archive's frames (``DAVIS/JPEGImages/480p``) and split lists (``DAVIS/ImageSets/2017``)
+    into ``cache/DAVIS``, through a scratch folder renamed once everything is there and checked."""
+    import zipfile
+    import zlib
+    scratch = cache / ".DAVIS.unpacking"
+    shutil.rmtree(scratch, ignore_errors=True)   # an earlier, interrupted unpack
+    try:
+        try:
+            with zipfile.ZipFile(archive) as z:
+                members = [m for m in z.infolist()
+                           if m.filename.startswith((f"{_DAVIS_FRAMES.as_posix()}/", f"{_DAVIS_SETS.as_posix()}/"))]
+                _need_space(cache, sum(m.file_size for m in members))
+                for m in members:
+                    z.extract(m, scratch)   # CRC-checked; zipfile keeps names inside scratch
+        except (zipfile.BadZipFile, zlib.error, EOFError) as e:
+            archive.unlink()
+            raise FetchError(f"{archive.name} is not a readable zip archive ({e}); deleted, run again") from None
+        try:
+            splits = {s: set((scratch / _DAVIS_SETS / f"{s}.txt").read_text().split()) for s in ("train", "val")}
+        except FileNotFoundError:
+            splits = {}
+        missing = davis_missing(scratch / _DAVIS_FRAMES, DAVIS17_TRAIN + DAVIS17_VAL)
+        if splits != {"train": set(DAVIS17_TRAIN), "val": set(DAVIS17_VAL)} or missing:
+            archive.unlink()
+            raise FetchError(f"{archive.name} is not DAVIS-2017 trainval: "
+                             + (f"no frames for {len(missing)} videos ({', '.join(missing[:3])})" if missing
+                                else "its ImageSets/2017 train / val lists are not the suite's")
+                             + "; deleted")
+        (scratch / "DAVIS").rename(cache / "DAVIS")
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 class _Distractions:
@@ -494,7 +674,8 @@ class _Distractions:
 
     * background: the skybox texture is turned into a single square face
       (``tex_height = tex_width``: MuJoCo then repeats that face on all six
-      cube sides) and a random image is written into it every episode; the
+      cube sides, as the original's ``tex_height = 800``) and every episode
+      one frame of the backgrounds (``Backgrounds.sample``) is written into it; the
       ground plane gets the original suite's alpha (``_GROUND_ALPHA``), so
       the background shows through it except for walker and cheetah.
     * camera (optional, ``camera_distraction=s``): static per-episode random
@@ -1012,11 +1193,13 @@ class SEAREnv(gym.Env):
         return mask
 
     def _corrupt(self, mask: np.ndarray) -> np.ndarray:
-        """The paper's robustness ablations, applied to the mask whatever its source."""
-        if self.mask_approx:
-            mask = approximate_mask(mask)
+        """The paper's robustness ablations, applied to the mask whatever its source: pixels dropped
+        first, then the approximation, in the authors' order (NoisyMaskWrapper inside
+        SlimMaskWrapper in every sear/environments/*_dm_env.py and distracting_dmc.py)."""
         if self.mask_noise > 0:
             mask = mask & (self._rng.random(mask.shape) >= self.mask_noise)
+        if self.mask_approx:
+            mask = approximate_mask(mask)
         return mask
 
     def _obs(self):
@@ -1105,6 +1288,10 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
 
     ``backgrounds``/``difficulty``/``split``/``camera_distraction``/
     ``color_distraction`` only matter for ``*-distracting`` envs.
+    ``backgrounds``: None (built-in procedural images, not the paper's),
+    "davis" (DAVIS-2017 from ``davis_cache()``: the paper's) or a folder; see
+    ``Backgrounds``.  ``split``: "train" (DAVIS train videos) or "eval" (DAVIS
+    validation videos).
     ``difficulty`` picks the number of background videos; the camera/colour
     distraction scales are given explicitly (the original suite's values per
     difficulty are 0.1 / 0.2 / 0.3) and default to off, as in the paper.
@@ -1264,13 +1451,24 @@ def main(argv=None) -> int:
     parser.add_argument("--mask-figure", metavar="PNG",
                         help="draw the stride vs majority mask downsampling comparison")
     parser.add_argument("--envs", nargs="+", default=list(GALLERY_ENVS), help="envs for --gallery")
-    parser.add_argument("--backgrounds", metavar="DIR", help="background images for *-distracting")
+    parser.add_argument("--backgrounds", metavar="DIR",
+                        help="backgrounds for *-distracting: davis (the cache, see --fetch-davis) or a folder")
     parser.add_argument("--render-quality", default="paper", choices=["paper", "fast"])
     parser.add_argument("--list", action="store_true", help="print the registered env names")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --gallery / --mask-figure PNG")
+    parser.add_argument("--fetch-davis", action="store_true",
+                        help=f"download DAVIS-2017 trainval 480p ({DAVIS_BYTES / 1e6:.0f} MB, the paper's Distracting "
+                             "Control backgrounds) into the cache, for --backgrounds davis; run again to resume")
+    parser.add_argument("--cache", metavar="DIR",
+                        help="--fetch-davis into DIR (then --backgrounds DIR) instead of $SEAR_DATA/davis "
+                             "(default ~/.cache/sear/davis)")
+    parser.add_argument("--davis-url", metavar="URL", default=DAVIS_URL,
+                        help="--fetch-davis from a mirror (its size and SHA-256 are still the official archive's)")
     args = parser.parse_args(argv)
-    if not (args.gallery or args.mask_figure or args.list):
-        parser.error("nothing to do: give --gallery PNG, --mask-figure PNG or --list")
+    if not (args.gallery or args.mask_figure or args.list or args.fetch_davis):
+        parser.error("nothing to do: give --gallery PNG, --mask-figure PNG, --list or --fetch-davis")
+    if args.fetch_davis:
+        return _fetch_main(args.cache, args.davis_url)
     try:
         for out in filter(None, (args.gallery, args.mask_figure)):
             if os.path.exists(out) and not args.force:  # e.g. a tracked picture in docs/
@@ -1291,6 +1489,22 @@ def main(argv=None) -> int:
     except EnvError as e:
         print(f"envs.py: error: {e}", file=sys.stderr)
         return 2
+    return 0
+
+
+def _fetch_main(cache: str | None, url: str) -> int:
+    """--fetch-davis: 0 once the cache holds DAVIS-2017, 1 (one line) when it could not."""
+    try:
+        frames = fetch_davis(cache, url=url)
+    except FetchError as e:
+        print(f"envs.py: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("envs.py: interrupted; run the same command again to resume the download", file=sys.stderr)
+        return 130
+    use = "--backgrounds davis" if cache is None else f"--backgrounds {cache}"
+    print(f"DAVIS-2017 480p ({len(DAVIS17_TRAIN)} train, {len(DAVIS17_VAL)} validation videos) in {frames}; "
+          f"use it with {use}")
     return 0
 
 

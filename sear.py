@@ -61,7 +61,8 @@ class Config:
     learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's mask in evaluation "
                                        "episodes only to report the learned masks' IoU (eval.csv learned_mask_iou), "
                                        "never as a target; --no-learned-mask-iou never renders one")
-    backgrounds: str = arg("", "Distracting Control: folder of images or DAVIS JPEGImages/480p ('' = built-in)")
+    backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py --fetch-davis), a "
+                               "DAVIS or image folder, or '' = built-in procedural images (not the paper's)")
     difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all backgrounds (authors: medium)",
                           ("easy", "medium", "hard"))
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)",

@@ -260,6 +260,8 @@ def test_smoke_run_on_every_suite(env_name, tmp_path):
     assert train and train[-1]["mask_loss"] != ""
     if not env_name.endswith("distracting"):  # the manipulation suites report success
         assert "success" in train[0] and "success" in rows(run_dir / "eval.csv")[0]
+    # Without --backgrounds, every Distracting Control run says its backgrounds are not the paper's.
+    assert ("not the paper's DAVIS-2017 videos" in r.stderr) == env_name.endswith("distracting"), r.stderr
 
 
 def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):

@@ -527,6 +527,19 @@ def test_mask_approx_erodes_the_clean_mask(get_env, name):
     assert 0.3 < kept < 0.9 and added < 0.02, (kept, added)
 
 
+def test_mask_noise_comes_before_the_approximation():
+    """The authors drop pixels first and approximate the noisy mask (NoisyMaskWrapper inside
+    SlimMaskWrapper in every sear/environments/*_dm_env.py and distracting_dmc.py). The two envs
+    draw the same noise: the approximation uses no random numbers."""
+    noisy = make_env("walker-walk", seed=4, render_quality="fast", mask_noise=0.3)
+    both = make_env("walker-walk", seed=4, render_quality="fast", mask_noise=0.3, mask_approx=True)
+    for pair in ((noisy.reset(seed=4)[0], both.reset(seed=4)[0]),
+                 (noisy.step(np.ones(6, np.float32))[0], both.step(np.ones(6, np.float32))[0])):
+        dropped, approximated = (obs["mask"][-1].astype(bool) for obs in pair)
+        assert dropped.any() and np.array_equal(approximated, envs.approximate_mask(dropped))
+    noisy.close(), both.close()
+
+
 def test_render_mask_false_gives_empty_masks():
     env = make_env("walker-walk", seed=0, render_quality="fast", render_mask=False)
     obs, _ = env.reset(seed=0)
