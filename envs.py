@@ -1126,7 +1126,7 @@ class SEAREnv(gym.Env):
         higher resolution.  A task set's models differ per task (other objects, meshes and
         textures): the renderers are made again when the task changes, which costs ~0.5 s per
         switch but holds one pair at a time (a pair holds 0.1-0.3 GB of textures and buffers;
-        one per MT50 task would take many GB; EXPERIMENTS.md, "Multi-task")."""
+        one per MT50 task would take many GB; EXPERIMENTS.md, "Task sets: memory and task switches")."""
         self._close_renderers()
         self._rgb_renderer = mujoco.Renderer(self.model, self.size, self.size)
         seg_size = self.size * self.mask_scale
