@@ -374,7 +374,8 @@ def rate_ci(values) -> str:
 def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device):
     """The background sampler of --prefetch (on by default with CUDA), or None: the loop samples."""
     if run.prefetch == "on" or (run.prefetch == "auto" and device.type == "cuda"):
-        # The loop writes up to update_every steps while the thread samples: keep clear of them.
+        # While the thread reads a batch, the loop writes up to 2 x update_every steps and a reset over
+        # the oldest slots of a full ring: episodes starting there are not drawn.
         return Prefetcher(buffer, cfg.batch_size, rng, device, margin=cfg.frame_stack + 2 * cfg.update_every)
     return None
 
@@ -382,29 +383,34 @@ def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device)
 class Prefetcher:
     """Replay sampling and the host->device copy of the next batch, in a background thread while the
     current update runs (--prefetch; on by default with CUDA, where the update would otherwise wait
-    for the host). One batch ahead: a batch cannot hold the newest `update_every` steps, and the sampling
-    RNG runs one batch ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
+    for the host). Ahead of the loop: a batch is drawn two updates before it is used (an episode that
+    ends reaches the batches 2 x update_every steps later than without it), and the sampling RNG runs
+    ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
 
     def __init__(self, buffer, batch_size: int, rng: np.random.Generator, device: torch.device, margin: int):
         self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
+        buffer.margin = margin  # the loop's buffer.can_sample() then asks what this thread can draw
         self.queue: queue.Queue = queue.Queue(maxsize=1)
         self.stop = threading.Event()
         self.thread = None
         self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
 
     def sample(self):
-        """buffer.sample(), but clear of the oldest `margin` slots of a full ring: those are the
-        slots the loop overwrites while this thread reads."""
+        """buffer.sample(): only finished episodes, none starting in the `margin` oldest slots of the
+        ring (the loop may overwrite those while this thread reads; it never writes into a finished
+        episode otherwise). None while no episode can be drawn: in a ring of about two episodes the
+        loop may have overwritten the only one; the loop's next can_sample() waits for the next."""
         b = self.buffer
-        lo = max(0, b.t - b.capacity)
-        if b.t > b.capacity:
-            lo = min(lo + self.margin, b.t - 1 - b.nstep)
-        return b.transitions(b.draw_starts(self.batch_size, self.rng, lo))
+        lo = max(0, b.t - b.capacity + self.margin)  # fixed here: the episodes drawable from lo only grow
+        return b.transitions(b.draw_starts(self.batch_size, self.rng, lo)) if len(b.drawable(lo)) else None
 
     def _produce(self):
         while not self.stop.is_set():
             try:
                 batch = self.sample()
+                if batch is None:
+                    self.stop.wait(0.001)
+                    continue
                 batch = type(batch)._make(torch.as_tensor(x) for x in batch)
                 event = None
                 if self.stream is not None:
@@ -445,7 +451,8 @@ BUFFER_ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
 
 
 def save_buffer(buffer, path):
-    """buffer.npz: the filled slots of the ring in physical order, and `t`."""
+    """buffer.npz: the filled slots of the ring in physical order, and `t` (the episode index follows
+    from the `first` flags)."""
     n = len(buffer)
     write_atomically(path, lambda f: np.savez(f, t=buffer.t, **{name: getattr(buffer, name)[:n]
                                                                  for name in BUFFER_ARRAYS}))
@@ -459,6 +466,7 @@ def load_buffer(buffer, path):
         for name in BUFFER_ARRAYS:
             getattr(buffer, name)[:n] = data[name]
         buffer.t = int(data["t"])  # a wrapped ring is saved in physical order: same slots here
+    buffer.index_episodes()  # the finished episodes, as the saving run had them
 
 
 def saved_buffer_t(path):

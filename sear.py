@@ -634,7 +634,9 @@ class ReplayBuffer:
     robot mask bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led to it,
     whether it is terminal, and whether it starts an episode. Frame stacks are rebuilt at sampling
     time, never across an episode start (the first frame repeats, as at reset), and n-step returns
-    are summed at sampling. A time-limit end (truncation) bootstraps; a termination does not."""
+    are summed at sampling. A time-limit end (truncation) bootstraps; a termination does not.
+    Draws follow DrQ-v2's loader (replay_buffer.py _sample): an episode uniformly among the finished
+    ones still whole in the ring, then a start whose whole n-step window lies in it."""
 
     def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount):
         self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
@@ -648,6 +650,9 @@ class ReplayBuffer:
         self.terminal = np.empty((capacity,), dtype=bool)
         self.first = np.empty((capacity,), dtype=bool)
         self.t = 0  # slots ever written; slot of time step l is l % capacity
+        self.episodes = np.zeros((0, 2), np.int64)  # (first time, steps) of the finished, drawable episodes
+        self.running = -1  # first time of the running episode
+        self.margin = 0  # oldest slots kept out of draws: a sampler thread reads while the loop overwrites them
 
     @property
     def bytes_per_transition(self):
@@ -668,24 +673,33 @@ class ReplayBuffer:
         self.t += 1
 
     def add_first(self, obs):
-        """The observation returned by reset()."""
+        """The observation returned by reset(): the episode before it is finished, drawn from now on
+        if an n-step window fits in it (DrQ-v2's loader fails on a shorter one)."""
+        if self.t - 1 - self.running >= self.nstep:
+            kept = self.episodes[self.episodes[:, 0] >= self.t - self.capacity]  # still whole in the ring
+            self.episodes = np.append(kept, [[self.running, self.t - 1 - self.running]], axis=0)
+        self.running = self.t
         self._write(obs, 0.0, 0.0, False, True)
 
     def add(self, action, reward, terminated, obs):
         """One env.step(): the action taken, the reward it earned, and the observation it led to."""
         self._write(obs, action, reward, terminated, False)
 
+    def index_episodes(self):
+        """The episode index rebuilt from the `first` flags (after loading a saved ring)."""
+        lo = max(0, self.t - self.capacity)
+        firsts = lo + np.flatnonzero(self.first[np.arange(lo, self.t) % self.capacity])
+        steps = np.diff(firsts) - 1
+        self.episodes = np.stack([firsts[:-1], steps], axis=1)[steps >= self.nstep]
+        self.running = firsts[-1] if len(firsts) else -1
+
     # --- sampling ---
     def _stack_indices(self, l):
-        """Time indices of the frames stacked at time l: walk back, but never past an episode
-        start or the oldest slot still in the ring (the frame there is repeated instead)."""
-        oldest = max(0, self.t - self.capacity)
+        """Time indices of the frames stacked at time l: walk back, but never past an episode start
+        (the frame there is repeated instead)."""
         idx = [l]
-        cur = l.copy()
         for _ in range(self.stack - 1):
-            stop = self.first[cur % self.capacity] | (cur <= oldest)
-            cur = np.where(stop, cur, cur - 1)
-            idx.append(cur.copy())
+            idx.append(np.where(self.first[idx[-1] % self.capacity], idx[-1], idx[-1] - 1))
         return np.stack(idx[::-1], axis=1)  # oldest frame first
 
     def _obs(self, l):
@@ -696,44 +710,35 @@ class ReplayBuffer:
         masks = bits.reshape(b, self.stack, *self.frame_shape[1:])
         return pixels, masks
 
+    def drawable(self, lo):
+        """(first time, steps) of the finished episodes that start at time lo or later."""
+        return self.episodes[np.searchsorted(self.episodes[:, 0], lo):]
+
     def can_sample(self):
-        return self.t - max(0, self.t - self.capacity) > self.nstep + 1
+        return len(self.drawable(max(0, self.t - self.capacity + self.margin))) > 0
 
     def sample(self, batch_size, rng: np.random.Generator) -> Batch:
-        """A batch of n-step transitions, their start times uniform over the valid ones."""
-        return self.transitions(self.draw_starts(batch_size, rng, lo=max(0, self.t - self.capacity)))
+        return self.transitions(self.draw_starts(batch_size, rng, lo=max(0, self.t - self.capacity + self.margin)))
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
-        """n start times from lo (the oldest slot) to n steps before the newest, never an episode's
-        last step (the slot after it starts an episode): drawn again, which keeps the draw uniform
-        over the valid starts without listing them."""
-        hi = self.t - 1 - self.nstep
-        l = rng.integers(lo, hi + 1, size=n)
-        bad = self.first[(l + 1) % self.capacity]
-        while bad.any():
-            l[bad] = rng.integers(lo, hi + 1, size=int(bad.sum()))
-            bad = self.first[(l + 1) % self.capacity]
-        return l
+        """n start times: an episode uniformly among those drawable from lo, then a start from which
+        all n steps lie inside it (DrQ-v2's idx range: an episode's last n-1 steps never start one)."""
+        first, steps = self.drawable(lo).T
+        e = rng.integers(len(first), size=n)
+        return first[e] + rng.integers(0, steps[e] - self.nstep + 1)
 
     def transitions(self, l) -> Batch:
-        """The n-step transitions starting at times l: R = sum_k gamma^(k-1) r_(l+k) up to n steps or
-        the episode's end, and the bootstrap discount gamma^m, zero if the episode terminated at l + m."""
+        """The n-step transitions starting at times l, each inside one episode (as drawn): R = sum_k
+        gamma^(k-1) r_(l+k), and the bootstrap discount gamma^n, zero if the episode terminated at l+n."""
         l = np.asarray(l, dtype=np.int64)
-        ret = np.zeros(len(l), dtype=np.float32)
-        gamma_m = np.ones(len(l), dtype=np.float32)
-        last = l.copy()  # time of the bootstrap observation
-        alive = np.ones(len(l), dtype=bool)  # still inside the episode
+        ret, gamma_n = np.zeros(len(l), dtype=np.float32), np.float32(1.0)
         for k in range(1, self.nstep + 1):
-            j = (l + k) % self.capacity
-            alive &= ~self.first[j]
-            ret += np.where(alive, gamma_m * self.rewards[j], 0.0).astype(np.float32)
-            gamma_m = np.where(alive, gamma_m * self.discount, gamma_m).astype(np.float32)
-            last = np.where(alive, l + k, last)
-        # A terminal step is always followed by a reset, so the walk above stops there too; only
-        # the bootstrap differs: none after a termination, gamma^m after a time-limit truncation.
-        discount = np.where(self.terminal[last % self.capacity], 0.0, gamma_m).astype(np.float32)
+            ret += gamma_n * self.rewards[(l + k) % self.capacity]
+            gamma_n *= np.float32(self.discount)
+        # Only the window's last step can end the episode: no bootstrap after a termination there.
+        discount = np.where(self.terminal[(l + self.nstep) % self.capacity], 0.0, gamma_n).astype(np.float32)
         obs, mask = self._obs(l)
-        next_obs, next_mask = self._obs(last)
+        next_obs, next_mask = self._obs(l + self.nstep)
         action = self.actions[(l + 1) % self.capacity]
         return Batch(obs, mask, action, ret[:, None], discount[:, None], next_obs, next_mask)
 

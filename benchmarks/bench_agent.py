@@ -178,7 +178,8 @@ def step_split(args):
     obs, _ = train_env.reset(seed=0)
     buffer.add_first(obs)
     times = {"env": [], "act": [], "sample": [], "update": []}
-    for step in range(args.split_warmup + args.split_steps):
+    step, timed = 0, 0
+    while timed < args.split_steps:
         t0 = time.perf_counter()
         action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
         t1 = time.perf_counter()
@@ -188,7 +189,9 @@ def step_split(args):
             obs, _ = train_env.reset(seed=step)
             buffer.add_first(obs)
         t2 = time.perf_counter()
-        if step >= args.split_warmup:  # the first steps only fill the buffer
+        # The first steps only fill the buffer, until an episode has ended (replay draws ended episodes).
+        if step >= args.split_warmup and buffer.can_sample():
+            timed += 1
             times["act"].append(t1 - t0)
             times["env"].append(t2 - t1)
             if step % cfg.update_every == 0:
@@ -199,6 +202,7 @@ def step_split(args):
                 t5 = time.perf_counter()
                 times["sample"].append(t4 - t3)
                 times["update"].append(t5 - t4)
+        step += 1
     train_env.close()
     per_step = {k: sum(v) / args.split_steps for k, v in times.items()}
     total = sum(per_step.values())
@@ -310,7 +314,8 @@ def main():
     p.add_argument("--env", default="walker-walk", help="env of the training-step split")
     p.add_argument("--split-method", default="sear", choices=list(sear.METHODS))
     p.add_argument("--split-steps", type=int, default=40, help="timed training steps of the split (0: skip)")
-    p.add_argument("--split-warmup", type=int, default=300, help="untimed steps that fill the split's buffer first")
+    p.add_argument("--split-warmup", type=int, default=300,
+                   help="untimed steps that fill the split's buffer first (and until an episode has ended)")
     p.add_argument("--official", metavar="DIR", help="a checkout of facebookresearch/drqv2 to time against")
     p.add_argument("--rounds", type=int, default=5, help="alternating rounds of the official comparison")
     p.add_argument("--breakdown", action="store_true",

@@ -1,26 +1,23 @@
-"""sear.py with its replay batches drawn the way the official DrQ-v2's replay loader draws them: the
-one difference left between our DrQ and the official code that EXPERIMENTS.md "Rung PC" could not
-rule out by reading (a diagnostic for that rung, not a mode of sear.py).
+"""sear.py with its replay batches drawn the way the official DrQ-v2's replay loader draws them, worker
+split included: a diagnostic for EXPERIMENTS.md "Rung PC", not a mode of sear.py.
 
     MUJOCO_GL=egl python benchmarks/drqv2_loader.py [--workers 4] -- --env cartpole-balance_sparse ...
     MUJOCO_GL=egl python benchmarks/drqv2_loader.py -- --resume RUN_DIR
 
-Everything after `--` is sear.py's flags. The official loader (drqv2 replay_buffer.py, a torch
-DataLoader over an IterableDataset with replay_buffer_num_workers=4) differs from sear.ReplayBuffer's
-uniform draw in three ways, and this sampler does all three:
-  1. a batch comes whole from one worker, and worker w holds only the episodes whose index is w modulo
-     the worker count; batches come from the workers in turn;
-  2. an episode is stored when it ends: the running episode is never sampled;
-  3. inside a worker, the episode is drawn uniformly, then a start from which all n steps lie inside
-     the episode (the last n-1 starts of an episode are never drawn; an episode of fewer than n steps,
-     on which the official loader fails, is never drawn).
+Everything after `--` is sear.py's flags. sear.ReplayBuffer draws as the official loader's
+ReplayBuffer._sample does (drqv2 replay_buffer.py; docs/replay.md): ended episodes only, an episode
+uniformly, then a start from which all n steps lie inside it. What the official loader (a torch
+DataLoader over an IterableDataset with replay_buffer_num_workers=4) adds, and this sampler does too:
+a batch comes whole from one worker, and worker w holds only the episodes whose index is w modulo the
+worker count (an episode of fewer than n steps, on which the official loader fails, keeps its index
+but is never drawn); batches come from the workers in turn.
 `python benchmarks/official_compare.py loader --official DRQV2` shows the official loader's batches
 beside this sampler's on the same episodes.
 What it leaves out: each worker re-reads the episode files every 1000 samples and runs two batches
 ahead, so an ended episode reaches the batches ~20-50 agent steps later there.
 
 The run directory gets a drqv2_loader.json; --resume through this script needs it (resume such a run
-through this script only: sear.py itself would continue with its uniform draw).
+through this script only: sear.py itself would continue without the worker split).
 """
 import json
 import os
@@ -37,7 +34,7 @@ MARKER = "drqv2_loader.json"
 
 
 class LoaderReplay(sear.ReplayBuffer):
-    """sear.ReplayBuffer, sampled as the official loader samples (the module docstring's 1-3)."""
+    """sear.ReplayBuffer, sampled as the official loader samples: its workers' episodes in turn."""
     workers = 4       # the official replay_buffer_num_workers
     update_every = 2  # agent steps per update: which worker's turn it is follows from the step
 
@@ -55,10 +52,6 @@ class LoaderReplay(sear.ReplayBuffer):
         if not mine.any():  # fewer ended episodes than workers: the official loader would fail here
             mine = last_start >= ended_first
         return ended_first[mine], last_start[mine]
-
-    def can_sample(self):
-        firsts = np.flatnonzero(self.first[:self.t])
-        return bool(np.any(firsts[1:] - 1 - self.nstep >= firsts[:-1]))
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
         first, last_start = self.worker_episodes()
@@ -90,7 +83,7 @@ def install(workers):
         LoaderReplay.update_every = cfg.update_every
         return train(cfg, run, snapshot)
 
-    def interrupt_message(*a, **k):  # resumed through sear.py, the run would go on with uniform batches
+    def interrupt_message(*a, **k):  # resumed through sear.py, the run would go on without the workers
         return interrupted(*a, **k).replace("python sear.py --resume", "python benchmarks/drqv2_loader.py -- --resume")
 
     experiment.RunDir.create, sear.train, experiment.interrupt_message = create_marked, train_loader, interrupt_message

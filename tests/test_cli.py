@@ -253,7 +253,8 @@ def test_resume_refuses_to_change_the_experiment(tmp_path):
 
 @pytest.mark.parametrize("env_name", ["walker-walk-distracting", "metaworld-door-open", "kitchen-kettle", "adroit-door"])
 def test_smoke_run_on_every_suite(env_name, tmp_path):
-    r = run(["--env", env_name, *TINY, "--frames", "16", "--seed-frames", "8", "--eval-every", "100"], tmp_path)
+    r = run(["--env", env_name, *TINY, "--frames", "16", "--seed-frames", "8", "--eval-every", "100",
+             "--max-episode-steps", "4"], tmp_path)  # an episode ends before the last step: updates run
     assert r.returncode == 0, r.stderr[-2000:]
     run_dir = only_run_dir(tmp_path)
     train = rows(run_dir / "train.csv")
@@ -295,8 +296,9 @@ def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
 def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action_repeat):
     """As DrQ-v2 (train.py train, drqv2.py act): the agent acts from step 0, uniformly for the first
     --exploration-steps AGENT steps, then with the actor plus noise; updates start once the seed
-    FRAMES are in. At action repeat 2 the 12 seed frames are the 6 uniform steps; at 1 the actor, not
-    yet updated, acts for the seed frames' second half."""
+    FRAMES are in and an episode has ended (DrQ-v2's loader draws from stored episodes only). At action
+    repeat 2 the 12 seed frames are the 6 uniform steps, and the first 8-step episode ends at step 8;
+    at 1 the actor, not yet updated, acts for the seed frames' second half."""
     import numpy as np
     import torch
 
@@ -322,7 +324,7 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     assert seen["act"] == list(range(last + 1))
     source = ["actor" if np.all(a == 0.125) else "uniform" for a in seen["actions"]]
     assert source == ["uniform"] * 6 + ["actor"] * (last + 1 - 6)
-    first = cfg.seed_frames // action_repeat  # the first step after the seed frames: 12 (repeat 1), 6 (repeat 2)
+    first = max(cfg.seed_frames // action_repeat, 8)  # after the seed frames and episode 0: 12 (repeat 1), 8 (2)
     assert seen["update"] and seen["update"][0] == first and seen["update"][-1] <= last
     assert all(s % cfg.update_every == 0 for s in seen["update"])
     (run_dir,) = (tmp_path / "runs").iterdir()

@@ -203,37 +203,61 @@ def fill(buffer, episodes, action_dim=2):
     return log
 
 
-def brute_force(log, l, n, gamma):
-    ret, g, last = 0.0, 1.0, l
-    for k in range(1, n + 1):
-        if l + k >= len(log) or log[l + k][2]:
-            break
-        ret += g * log[l + k][1]
-        g *= gamma
-        last = l + k
-        if log[l + k][3]:
-            return ret, 0.0, last
-    return ret, g, last
+def reference_episodes(log):
+    """The log as DrQ-v2's ReplayBufferStorage stores it (replay_buffer.py add): one record per episode,
+    its reset first (dummy reward 0, discount 1), then a step's reward and discount (0 at a termination);
+    with the time of each observation in our ring."""
+    episodes = []
+    for time, (e, r, first, term) in enumerate(log):
+        if first:
+            episodes.append({"time": [], "reward": [], "discount": []})
+        episodes[-1]["time"].append(time)
+        episodes[-1]["reward"].append(np.float32(r))
+        episodes[-1]["discount"].append(np.float32(0.0 if term else 1.0))
+    return episodes
 
 
-def test_nstep_returns_match_brute_force_and_termination_vs_truncation():
+def reference_sample(episode, idx, n, gamma):
+    """DrQ-v2's ReplayBuffer._sample at a given idx (1 <= idx <= len - n): the obs, next obs and action
+    times in our ring, the n-step return and the bootstrap discount."""
+    reward, discount = np.float32(0.0), np.float32(1.0)
+    for i in range(n):
+        reward += discount * episode["reward"][idx + i]
+        discount *= episode["discount"][idx + i] * gamma
+    return episode["time"][idx - 1], episode["time"][idx + n - 1], episode["time"][idx], reward, discount
+
+
+def reference_distribution(log, n, finished):
+    """{start time: probability} of DrQ-v2's draw over the first `finished` episodes of the log:
+    random.choice of an episode, then idx = randint(0, len - n + 1) + 1 (the start is obs idx - 1).
+    Episodes shorter than n, on which the official loader fails, are left out."""
+    episodes = [ep for ep in reference_episodes(log)[:finished] if len(ep["time"]) - 1 >= n]
+    return {ep["time"][idx - 1]: 1 / len(episodes) / (len(ep["time"]) - n)
+            for ep in episodes for idx in range(1, len(ep["time"]) - n + 1)}
+
+
+def test_nstep_returns_match_drqv2_and_termination_vs_truncation():
+    """Every start DrQ-v2 can draw gives its sample: obs, action, n-step return, discount, next obs."""
     rng = np.random.default_rng(0)
-    episodes = [(list(rng.normal(size=L)), term) for L, term in [(7, False), (2, True), (5, True), (1, False), (9, False)]]
+    episodes = [(list(rng.normal(size=L)), term)
+                for L, term in [(7, False), (3, True), (5, True), (1, False), (9, False)]]
     buf = sear.ReplayBuffer(1000, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.9)
     log = fill(buf, episodes)
-    starts = [l for l in range(len(log) - 1 - 3) if not log[l + 1][2]]
+    buf.add_first(make_obs(len(log), len(episodes)))
+    starts = sorted(reference_distribution(log, 3, len(episodes)))
     obs, mask, action, ret, disc, next_obs, next_mask = buf.transitions(np.array(starts))
+    by_start = {reference_sample(ep, idx, 3, 0.9)[0]: reference_sample(ep, idx, 3, 0.9)
+                for ep in reference_episodes(log) for idx in range(1, len(ep["time"]) - 2)}
     for i, l in enumerate(starts):
-        r, g, last = brute_force(log, l, 3, 0.9)
-        assert ret[i, 0] == pytest.approx(r, abs=1e-5)
-        assert disc[i, 0] == pytest.approx(g, abs=1e-6)
-        assert next_obs[i, -3] .flat[0] == last % 256  # newest frame of next_obs is time `last`
-        assert action[i, 0] == pytest.approx((l + 1) / 1000)
-    # a terminated episode's last transition does not bootstrap, a truncated one does
-    term_l = [l for l in starts if brute_force(log, l, 3, 0.9)[1] == 0.0]
-    trunc_end = [l for l in starts if log[l + 1][0] == 0 and l + 1 == 7]  # episode 0 is truncated at t=7
-    assert term_l and all(disc[starts.index(l), 0] == 0.0 for l in term_l)
-    assert trunc_end and disc[starts.index(trunc_end[0]), 0] == pytest.approx(0.9)
+        _, next_time, action_time, r, g = by_start[l]
+        assert ret[i, 0] == r and disc[i, 0] == g  # the same float32 arithmetic
+        assert obs[i, -3].flat[0] == l % 256 and next_obs[i, -3].flat[0] == next_time % 256
+        assert action[i, 0] == pytest.approx(action_time / 1000)
+    # A terminated episode's last window does not bootstrap, a truncated one's does. Episode 0: reset at
+    # t=0, 7 steps, truncated; 1: reset at 8, 3 steps, terminated; 2: reset at 12, 5 steps, terminated.
+    assert disc[starts.index(4), 0] == pytest.approx(0.9 ** 3) and disc[starts.index(8), 0] == 0.0
+    assert disc[starts.index(13), 0] == pytest.approx(0.9 ** 3) and disc[starts.index(14), 0] == 0.0
+    assert 5 not in starts and 15 not in starts and 18 not in starts  # last n-1 steps; the 1-step episode
 
 
 def test_stacks_never_cross_episodes_and_repeat_first_frame():
@@ -262,6 +286,148 @@ def test_sampling_only_valid_and_ring_never_serves_overwritten_frames():
         obs, *_ = buf.sample(16, rng)
         times = obs[:, 0::3, 0, 0].astype(int)
         assert (times >= oldest % 256).all()
+
+
+def drawn(buf, n, seed=0):
+    return buf.draw_starts(n, np.random.default_rng(seed), max(0, buf.t - buf.capacity))
+
+
+def test_episodes_then_starts_are_drawn_with_drqv2s_frequencies():
+    """Chi-square of 300k draws against DrQ-v2's distribution, enumerated from its rule
+    (replay_buffer.py _sample): an episode uniformly, then a start whose n-step window lies in it. Here
+    the 3-step episode is drawn as often as the 100-step one, 33 times more per start."""
+    from scipy import stats
+    lengths = [3, 40, 7, 100, 2, 33, 12]  # the 2-step episode has no whole 3-step window
+    buf = sear.ReplayBuffer(400, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    log = fill(buf, [([1.0] * length, False) for length in [*lengths, 50]])  # then a running episode
+    expected = reference_distribution(log, 3, len(lengths))
+    starts = drawn(buf, 300_000)
+    support = sorted(expected)
+    assert set(starts.tolist()) == set(support)  # no start outside DrQ-v2's (running episode, last steps)
+    counts = np.array([np.sum(starts == l) for l in support])
+    p = np.array([expected[l] for l in support])
+    assert stats.chisquare(counts, p * len(starts)).pvalue > 1e-3
+    firsts = np.flatnonzero([r[2] for r in log])
+    episode = np.searchsorted(firsts, starts, side="right") - 1
+    per_episode = np.bincount(episode, minlength=len(lengths))[[0, 1, 2, 3, 5, 6]]
+    assert stats.chisquare(per_episode).pvalue > 1e-3  # each episode with a window, equally often
+
+
+def test_the_running_episode_is_never_drawn():
+    buf = sear.ReplayBuffer(400, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    fill(buf, [([1.0] * 50, False)])
+    assert not buf.can_sample()  # no episode has ended: DrQ-v2's loader has no file yet
+    fill(buf, [([1.0] * 5, False), ([1.0] * 200, False)])  # 50 steps of the running episode were added first
+    starts = drawn(buf, 20_000)
+    assert buf.can_sample() and starts.min() == 0 and starts.max() == 51 + 5 - 3
+
+
+def test_an_episodes_last_n_minus_1_steps_never_start_a_sample():
+    buf = sear.ReplayBuffer(400, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    fill(buf, [([1.0] * 5, False), ([1.0] * 4, True), ([1.0] * 3, False), ([1.0] * 1, False)])
+    # resets at 0, 6, 11, 15; the episode at 15 runs
+    assert set(drawn(buf, 5000).tolist()) == {0, 1, 2, 6, 7, 11}
+
+
+def test_a_wrapped_ring_draws_only_episodes_it_holds_whole():
+    """Step by step through several wraps of a small ring: every sample's stacks and next obs lie in
+    one episode whose reset is still in the ring (DrQ-v2 evicts whole episodes, oldest first)."""
+    buf = sear.ReplayBuffer(60, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    rng, t, episode, resets = np.random.default_rng(0), 0, 0, {}
+    for length in rng.integers(1, 25, size=30):
+        resets[episode] = t
+        buf.add_first(make_obs(t, episode))
+        for _ in range(length):
+            t += 1
+            buf.add(np.zeros(2, np.float32), 1.0, False, make_obs(t, episode))
+            if buf.can_sample():
+                b = buf.sample(32, rng)
+                ep = b.obs[:, 1, 0, 0].astype(int)
+                for x in (b.obs, b.next_obs):
+                    assert (x[:, 1::3, 0, 0] == ep[:, None]).all()  # one episode
+                assert all(resets[e] >= buf.t - buf.capacity for e in ep.tolist())  # its reset not overwritten
+        t += 1
+        episode += 1
+    assert buf.t > 5 * buf.capacity
+
+
+@pytest.mark.parametrize("mid_episode", [False, True])
+def test_a_saved_ring_loads_to_the_same_draws(tmp_path, mid_episode):
+    """buffer.npz holds no episode index: it is rebuilt from the reset flags, to the same draws now and
+    after the run goes on (exact resume), wrapped or not."""
+    rng = np.random.default_rng(0)
+    a = sear.ReplayBuffer(100, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    episodes = [([1.0] * int(n), False) for n in rng.integers(1, 30, size=12)]
+    for ring_full in (False, True):
+        fill(a, episodes[:4] if not ring_full else episodes)
+        if mid_episode:
+            a.add_first(make_obs(a.t, 99)), a.add(np.zeros(2, np.float32), 1.0, False, make_obs(a.t, 99))
+        experiment.save_buffer(a, str(tmp_path / "buffer.npz"))
+        b = sear.ReplayBuffer(100, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+        experiment.load_buffer(b, str(tmp_path / "buffer.npz"))
+        assert (a.t > a.capacity) == ring_full
+        for _ in range(2):  # now, and after an episode more
+            assert a.can_sample() == b.can_sample()
+            x, y = a.sample(64, np.random.default_rng(1)), b.sample(64, np.random.default_rng(1))
+            assert all(np.array_equal(u, v) for u, v in zip(x, y))
+            for buf in (a, b):
+                fill(buf, [([1.0] * 7, True)])
+                buf.add_first(make_obs(buf.t, 98))
+
+
+DRQV2 = os.environ.get("SEAR_DRQV2", "")  # a checkout of facebookresearch/drqv2, not part of this project
+
+
+@pytest.mark.skipif(not os.path.isfile(os.path.join(DRQV2, "replay_buffer.py")),
+                    reason="SEAR_DRQV2=<a checkout of facebookresearch/drqv2> not given")
+def test_samples_and_their_frequencies_equal_the_official_drqv2_replay(tmp_path):
+    """The official ReplayBuffer._sample (replay_buffer.py, one worker, every episode fetched) over episode
+    files whose observations name (episode, step), and this ring over the same episodes: each official
+    sample's action, n-step return and discount equal ours at its start, bit for bit, and the two
+    draws' frequencies of (episode, start) agree (chi-square of the two samples)."""
+    import importlib.util
+    import random
+
+    from scipy import stats
+    spec = importlib.util.spec_from_file_location("drqv2_replay_buffer", os.path.join(DRQV2, "replay_buffer.py"))
+    official = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(official)
+    rng = np.random.default_rng(0)
+    lengths, terminated = [3, 40, 7, 100, 5, 33, 12], [False, True, False, False, True, False, True]
+    ours = sear.ReplayBuffer(400, (3, 1, 1), 1, frame_stack=3, nstep=3, discount=0.99)
+
+    def step_obs(k):  # 1x1 frames that name the step in the episode
+        return {"pixels": np.full((9, 1, 1), k, np.uint8), "mask": np.zeros((3, 1, 1), bool)}
+    for e, (length, term) in enumerate(zip(lengths, terminated)):
+        reward = np.concatenate([[0], rng.normal(size=length)]).astype(np.float32)[:, None]
+        action = np.concatenate([[0], rng.uniform(-1, 1, size=length)]).astype(np.float32)[:, None]
+        discount = np.ones((length + 1, 1), np.float32)
+        discount[-1] = 0.0 if term else 1.0
+        obs = np.stack([np.full(length + 1, e), np.arange(length + 1)], 1).astype(np.uint8)[:, :, None, None]
+        np.savez(tmp_path / f"20260101T000000_{e}_{length}.npz", observation=obs, action=action, reward=reward,
+                 discount=discount)
+        ours.add_first(step_obs(0))
+        for k in range(1, length + 1):
+            ours.add(action[k], reward[k, 0], term and k == length, step_obs(k))
+    ours.add_first(step_obs(0))  # the running episode: the official loader sees files only
+    buffer = official.ReplayBuffer(tmp_path, 10 ** 6, 1, 3, 0.99, fetch_every=10 ** 9, save_snapshot=True)
+    random.seed(0), np.random.seed(0)
+    samples = [buffer._sample() for _ in range(40_000)]
+    firsts = np.flatnonzero(ours.first[:ours.t])
+    keys = [(int(o[0, 0, 0]), int(o[1, 0, 0])) for o, *_ in samples]  # (episode, start) of each official sample
+    starts = np.array([firsts[e] + k for e, k in keys])
+    batch = ours.transitions(starts)
+    assert np.array_equal(batch.reward[:, 0], np.array([s[2][0] for s in samples]))
+    assert np.array_equal(batch.discount[:, 0], np.array([s[3][0] for s in samples]))
+    assert np.array_equal(batch.action, np.array([s[1] for s in samples]))
+    assert [(int(o[0, 0, 0]), int(o[1, 0, 0])) for *_, o in samples] == [(e, k + 3) for e, k in keys]
+    assert batch.obs[:, -3, 0, 0].tolist() == [k for _, k in keys]
+    assert batch.next_obs[:, -3, 0, 0].tolist() == [k + 3 for _, k in keys]
+    mine = drawn(ours, 40_000)
+    support = sorted(set(starts.tolist()))
+    assert set(mine.tolist()) == set(support)
+    table = [[np.sum(x == l) for l in support] for x in (starts, mine)]
+    assert stats.chi2_contingency(table).pvalue > 1e-3
 
 
 def test_bytes_per_transition_within_target():
@@ -365,17 +531,35 @@ def test_prefetcher_delivers_the_batches_direct_sampling_would(device):
 
 def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
     """While the background sampler reads, the loop overwrites the oldest slots of a full ring: the
-    prefetched batches start `margin` slots after the oldest, where direct sampling starts anywhere."""
+    prefetched batches come from episodes that start `margin` slots after the oldest, where direct
+    sampling takes any episode still whole in the ring."""
     buf = sear.ReplayBuffer(30, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
-    fill(buf, [([0.5] * 9, False)] * 8)  # 80 steps into 30 slots
-    oldest = buf.t - buf.capacity
+    fill(buf, [([0.5] * 9, False)] * 8)  # 80 slots into 30: episodes at 0, 10, ..., 70 (running)
+    direct = buf.sample(256, np.random.default_rng(0)).obs[:, -3, 0, 0].astype(int)  # 50 and 60 are whole
     pre = experiment.Prefetcher(buf, 64, np.random.default_rng(0), torch.device("cpu"), margin=7)
     fetched = [pre.next() for _ in range(5)]
     pre.close()
     start_times = np.concatenate([b.obs[:, -3, 0, 0].numpy() for b in fetched]).astype(int)  # newest frame: start
-    assert isinstance(fetched[0], sear.Batch) and start_times.min() >= oldest + 7
-    direct = buf.sample(64, np.random.default_rng(0)).obs[:, -3, 0, 0].astype(int)
-    assert direct.min() < oldest + 7
+    assert isinstance(fetched[0], sear.Batch) and set(start_times) == set(range(60, 67))  # 50 < 50 + 7
+    assert set(direct) == set(range(50, 57)) | set(range(60, 67))
+
+
+def test_prefetcher_waits_while_the_margin_leaves_no_episode_and_the_loop_waits_too():
+    """A ring of about two episodes: the only finished episode starts in the margin. The thread draws
+    nothing (no error, no batch), and the loop's can_sample() says no as well, so the learner never
+    waits for a batch that cannot come."""
+    buf = sear.ReplayBuffer(19, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
+    fill(buf, [([0.5] * 9, False)] * 3)  # episodes at 0, 10, 20
+    buf.add_first(make_obs(30, 3))  # episode 20-29 ends
+    for time in range(31, 40):
+        if time == 34:  # the oldest slot holds time 15: episode 20 is whole, but starts in the margin
+            assert buf.can_sample()
+            pre = experiment.Prefetcher(buf, 8, np.random.default_rng(0), torch.device("cpu"), margin=7)
+            assert pre.sample() is None and not buf.can_sample()  # 20 < 15 + 7
+        buf.add(np.zeros(2, np.float32), 0.5, False, make_obs(time, 3))
+    buf.add_first(make_obs(40, 4))  # episode 30-39 ends: 30 >= 41 - 19 + 7
+    assert buf.can_sample() and set(pre.next().obs[:, -3, 0, 0].numpy().astype(int)) <= set(range(30, 37))
+    pre.close()
 
 
 @pytest.mark.parametrize("name, code, says", [("cpu", 0, "1 passed"), ("nonsense", 2, "is not a torch device")]
