@@ -352,11 +352,11 @@ def rule_groups(ours: dict, methods: list[str]) -> list[tuple[str, dict]]:
 def rule_report(ours: dict, ref: dict, methods: list[str], at=(EARLY, LATE)) -> str:
     """The p-values beside the table, then the verdict line of each group (ours first)."""
     level = ALPHA / TESTS
-    late_k = plot.short_frames(LATE)
+    late_k = plot.short_frames(at[1])  # where ours are read: LATE but in a reduced run's check
     lines = [f"rule (docs/verdict.md): one-sided, ours worse; alpha {ALPHA:g} over {TESTS} tests, each at {level:g}; "
-             f"at the maximum: >= {SOLVED:g} at {late_k}; MATCH needs {MATCH_SEEDS} seeds", "",
+             f"at the maximum: >= {SOLVED:g} at {plot.short_frames(LATE)}; MATCH needs {MATCH_SEEDS} seeds", "",
              f"| runs | seeds at {late_k} | at the maximum | Fisher p ({late_k}) | Mann-Whitney p "
-             f"({plot.short_frames(EARLY)}) | Mann-Whitney p ({late_k}, not counted) | verdict |", "|---|---|---|---|---|---|---|"]
+             f"({plot.short_frames(at[0])}) | Mann-Whitney p ({late_k}, not counted) | verdict |", "|---|---|---|---|---|---|---|"]
     verdicts = []
     pub_late = published_at(ref, LATE)
     for label, runs in rule_groups(ours, methods):
@@ -378,7 +378,7 @@ def rule_report(ours: dict, ref: dict, methods: list[str], at=(EARLY, LATE)) -> 
         so_far = " so far" if left_out else ""  # more seeds can change any outcome
         seeds = f"{t['seeds']} seed{'s' * (t['seeds'] != 1)}"
         verdicts.append(f"{head}: {outcome}{so_far} ({seeds} at {late_k}, {t['solved']} at the maximum: Fisher p = "
-                        f"{t['fisher']:.3g}, Mann-Whitney p ({plot.short_frames(EARLY)}) = {t['mwu_early']:.3g}: "
+                        f"{t['fisher']:.3g}, Mann-Whitney p ({plot.short_frames(at[0])}) = {t['mwu_early']:.3g}: "
                         f"{why}{note}{check})")
     lines.append(f"| DrQ-v2 published | {len(pub_late)} | {int((pub_late >= SOLVED).sum())} | | | | |")
     return "\n".join(lines + [""] + verdicts)
