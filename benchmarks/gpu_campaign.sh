@@ -200,6 +200,10 @@ fi
        "($([ "$device" = cuda ] && echo "${gpu_name//_/ }, $free_gib GiB free at the start" || echo "no CUDA device"))," \
        "torch $torch_version, $cores CPU cores, MUJOCO_GL=$MUJOCO_GL"
   tail -n 1 "$out/logs/env_probe.log"
+  if [ "$device" = cuda ] && [ "$quality" = paper ] && grep -q llvmpipe "$out/logs/env_probe.log"; then
+    echo "(EGL renders on the CPU here, not on the GPU: paper frames then cost ~20 ms of a core each, and 16 seeds" \
+         "to 40k frames do not fit 9 minutes; docs/verdict.md, \"The campaign\")"
+  fi
   echo
   echo "$seeds seeds of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \
        "$slots at a time (cores $cores$([ "$device" = cuda ] && echo ", GPU memory at $gib_per_run GiB per run"));" \

@@ -307,7 +307,7 @@ def test_the_rule_reads_a_reduced_run_elsewhere_and_says_it_is_no_verdict(tmp_pa
         make_returns_run(tmp_path / "runs", "drq", seed, {0: 10.0, 100: 20.0, 200: 30.0})
     code, out, err = run_main(capsys, tmp_path / "runs", "--rule-frames", 100, 200, "--out", tmp_path / "fig.png")
     assert code == 0, err
-    assert "verdict: NO MATCH (2 seeds at 40k, 0 at the maximum: Fisher p = 0.0152" in out  # 1 / C(12, 2)
+    assert "verdict: NO MATCH (2 seeds at 200, 0 at the maximum: Fisher p = 0.0152, Mann-Whitney p (100) = 0.0152" in out  # 1 / C(12, 2)
     assert "ours at 100 and 200 frames against the published 20000 and 40000: a check of the pipeline, not a verdict" in out
 
 
