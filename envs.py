@@ -766,10 +766,12 @@ class _DMCBackend:
     mask_scale = 1       # masks rendered at the observation size
     opening = False
 
-    def __init__(self, domain: str, task: str, seed: int):
+    def __init__(self, domain: str, task: str, seed: int, pole_inertia: str = "exact"):
         from dm_control import suite
         self.env = suite.load(domain, task, task_kwargs={"random": seed})
         self.physics = self.env.physics
+        if pole_inertia == "2021":
+            mujoco2_pole_inertia(self.physics)
         self.model = self.physics.model.ptr
         self.data = self.physics.data.ptr
         self.domain = domain
@@ -812,6 +814,20 @@ class _DMCBackend:
         # env's renderer is current, they broke that env's segmentation render
         # (quadruped-fetch after quadruped-escape: colours instead of ids).
         self.physics.free()
+
+
+def mujoco2_pole_inertia(physics) -> None:
+    """Cartpole's poles with the inertia MuJoCo 2.0 gave them, under DrQ-v2's 2021 curves. MuJoCo 2.1.1
+    made capsule inertias exact; before, a capsule of radius r and half-length h weighed as a cylinder of
+    length 2h + r: m (3r^2 + (2h + r)^2) / 12 across, m r^2 / 2 along (pole_1: 0.00915083 and 0.00010125,
+    against 0.00942459 and 0.00010010 now: 0.8% more about the hinge). Each pole body is one capsule."""
+    m = physics.model.ptr
+    for b in range(m.nbody):
+        if m.body(b).name.startswith("pole_"):
+            g = m.body_geomadr[b]
+            r, h, mass = m.geom_size[g][0], m.geom_size[g][1], m.body_mass[b]
+            m.body_inertia[b] = [mass * (3 * r * r + (2 * h + r) ** 2) / 12] * 2 + [mass * r * r / 2]
+    mujoco.mj_setConst(m, physics.data.ptr)  # what compiling derives from inertias (solver weights)
 
 
 def _dist(a, b) -> float:
@@ -1283,7 +1299,7 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
              mask_downsample: str = "majority", camera_distraction: float = 0.0,
              color_distraction: float = 0.0, render_mask: bool = True,
              variation_seed: int | None = None, kitchen_camera: str = "fixed",
-             mask_model=None) -> SEAREnv:
+             mask_model=None, pole_inertia: str = "exact") -> SEAREnv:
     """Build a SEAR pixel env.  See the module docstring for the contract.
 
     ``backgrounds``/``difficulty``/``split``/``camera_distraction``/
@@ -1308,6 +1324,8 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     see the same placements.
     ``kitchen_camera`` (Kitchen only): "fixed" (the authors' default view) or
     "random" (one of their six views per episode, drawn from the reset seed).
+    ``pole_inertia`` (cartpole only): "exact" (MuJoCo 3's capsule) or "2021"
+    (MuJoCo 2.0's, as under DrQ-v2's published curves: mujoco2_pole_inertia).
     """
     suite, args = _parse_name(name)
     if difficulty not in _DIFFICULTY_NUM_VIDEOS:
@@ -1332,6 +1350,10 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
         raise EnvError(f"kitchen_camera must be 'fixed' or 'random'; got {kitchen_camera!r}")
     if kitchen_camera == "random" and suite != "kitchen":
         raise EnvError(f"a random kitchen camera only applies to kitchen-* envs, not {name!r}")
+    if pole_inertia not in ("exact", "2021"):
+        raise EnvError(f"pole_inertia must be 'exact' or '2021'; got {pole_inertia!r}")
+    if pole_inertia == "2021" and not (suite in ("dmc", "distracting") and args[0] == "cartpole"):
+        raise EnvError(f"the 2021 pole inertia only applies to cartpole-* envs, not {name!r}")
 
     distractions_kwargs = None
     if suite == "distracting":
@@ -1340,7 +1362,7 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
         distractions_kwargs = dict(backgrounds=bgs, camera_scale=float(camera_distraction),
                                    color_scale=float(color_distraction))
     if suite in ("dmc", "distracting"):
-        backend = _DMCBackend(*args, seed=seed)
+        backend = _DMCBackend(*args, seed=seed, pole_inertia=pole_inertia)
     elif suite == "metaworld":
         backend = _MetaWorldBackend(*args, variation_seed=seed if variation_seed is None
                                     else variation_seed)

@@ -99,7 +99,7 @@ def make_run_env(cfg, split: str, render_mask: bool, mask_model=None, **override
                   difficulty=cfg.difficulty, render_quality=cfg.render_quality,
                   mask_downsample=cfg.mask_downsample, camera_distraction=cfg.camera_distraction,
                   color_distraction=cfg.color_distraction, render_mask=render_mask,
-                  kitchen_camera=cfg.kitchen_camera, mask_model=mask_model) | overrides
+                  kitchen_camera=cfg.kitchen_camera, mask_model=mask_model, pole_inertia=cfg.pole_inertia) | overrides
     # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
     # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
     seed = cfg.seed + (100_000 if split == "eval" else 0)

@@ -359,7 +359,7 @@ def parse_reference(spec: str) -> tuple[str, str | None]:
 
 
 def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
-    """{task key: {"label", "frames", "mean", "min", "max", "seeds"}} of a published curve file. Per task
+    """{task key: {"label", "frames", "mean", "min", "max", "seeds", "values"}} of a published curve file. Per task
     its seeds are aligned on the frames they all have, as eval.csv runs are (aggregate)."""
     if not os.path.isfile(path):
         raise PlotError(f"--reference {path}: no such file")
@@ -392,7 +392,8 @@ def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
         ys = np.array([[points[x] for x in frames] for points in by_seed.values()])
         agent = agents[task].pop() or os.path.basename(path)
         curves[task] = {"label": label or f"{agent} (published)", "frames": frames, "mean": ys.mean(axis=0),
-                        "min": ys.min(axis=0), "max": ys.max(axis=0), "seeds": len(by_seed)}
+                        "min": ys.min(axis=0), "max": ys.max(axis=0), "seeds": len(by_seed),
+                        "values": ys}  # (seeds, frames): each seed's return, for tests against ours
     return curves
 
 

@@ -67,6 +67,8 @@ class Config:
                           ("easy", "medium", "hard"))
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)",
                               ("paper", "fast"))
+    pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, under DrQ-v2's "
+                                     "curves: 0.8% less about the hinge)", ("exact", "2021"))
     camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
     color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
     kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)",

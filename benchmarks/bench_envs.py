@@ -5,7 +5,10 @@ suite's default action repeat of physics steps + one RGB render, plus the
 segmentation render and mask pipeline for "RGB+mask").  Each env is built
 once per render quality; both mask modes are timed on it after a warm-up.
 
-    MUJOCO_GL=egl python benchmarks/bench_envs.py [--steps 24] [--envs ...]
+    MUJOCO_GL=egl python benchmarks/bench_envs.py [--steps 24] [--envs ...] [--clock cpu]
+
+--clock cpu counts this process's CPU seconds (every thread of it, the renderer's too) instead of
+wall seconds: steps per CPU-second, what one core gives, also on a machine that others share.
 """
 from __future__ import annotations
 
@@ -26,15 +29,18 @@ DEFAULT_ENVS = ["walker-walk", "walker-walk-distracting", "cup-catch", "metaworl
                 "kitchen-kettle", "adroit-door"]
 
 
-def steps_per_second(env, steps: int, rng: np.random.Generator) -> float:
+CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
+
+
+def steps_per_second(env, steps: int, rng: np.random.Generator, clock=time.perf_counter) -> float:
     env.reset(seed=0)
     env.step(rng.uniform(-1, 1, env.action_space.shape))  # warm-up (first render)
-    start = time.perf_counter()
+    start = clock()
     for _ in range(steps):
         _, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
         if terminated or truncated:
             env.reset()
-    return steps / (time.perf_counter() - start)
+    return steps / (clock() - start)
 
 
 def gl_renderer(env) -> str:
@@ -49,6 +55,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=24, help="timed agent steps per cell")
     parser.add_argument("--envs", nargs="+", default=DEFAULT_ENVS)
+    parser.add_argument("--clock", choices=list(CLOCKS), default="wall",
+                        help="wall: steps per wall second; cpu: per CPU-second of this process (one core's rate)")
     args = parser.parse_args()
 
     rows, renderer = [], None
@@ -60,12 +68,13 @@ def main() -> None:
             rng = np.random.default_rng(0)
             for render_mask in (False, True):
                 env.render_mask = render_mask
-                cells[quality, render_mask] = steps_per_second(env, args.steps, rng)
+                cells[quality, render_mask] = steps_per_second(env, args.steps, rng, CLOCKS[args.clock])
             env.close()
         rows.append((name, envs.default_action_repeat(name), cells))
         print(f"# done {name}", file=sys.stderr, flush=True)
 
-    print(f"Agent steps/s ({args.steps} steps per cell, 84x84, {os.cpu_count()} CPU cores, "
+    per = "CPU-second of this process" if args.clock == "cpu" else "wall second"
+    print(f"Agent steps per {per} ({args.steps} steps per cell, 84x84, {os.cpu_count()} CPU cores, "
           f"MUJOCO_GL={os.environ['MUJOCO_GL']}, OpenGL: {renderer})\n")
     print("| env | action repeat | paper RGB | paper RGB+mask | fast RGB | fast RGB+mask |")
     print("|---|---|---|---|---|---|")

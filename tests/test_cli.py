@@ -119,6 +119,7 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--env", "walker-walk-distracting", "--backgrounds", "does/not/exist"], "does not exist"),
     (["--mask-downsample", "every-other"], "argument --mask-downsample: invalid choice: 'every-other'"),
     (["--snapshot-minutes", "-1"], "--snapshot-minutes must be >= 0"),
+    (["--env", "walker-walk", "--pole-inertia", "2021"], "the 2021 pole inertia only applies to cartpole-* envs"),
 ])
 def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
     r = run(args, tmp_path)

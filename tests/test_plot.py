@@ -277,6 +277,7 @@ def test_load_reference_mean_and_min_max_over_seeds_on_their_common_frames(tmp_p
     np.testing.assert_allclose(ref["min"], [30, 100, 900])
     np.testing.assert_allclose(ref["max"], [50, 700, 1000])
     assert ref["seeds"] == 3 and ref["label"] == "DrQ-v2 (published)"
+    np.testing.assert_allclose(ref["values"], [[50, 100, 1000], [30, 400, 900], [40, 700, 950]])  # seed by seed
     assert plot.load_reference(str(path), "theirs")["cartpole_balance_sparse"]["label"] == "theirs"
 
 
