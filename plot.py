@@ -1,20 +1,23 @@
 """Learning curves from sear.py run directories: mean over seeds with a 95% confidence band.
 
-Usage:  python plot.py runs/ --out curves.png
+Usage:  python plot.py runs/ --out runs/curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
-        python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py runs/ --metric success --csv eval --out runs/success.png --force
         python plot.py 'runs/cartpole-balance_sparse*' --reference drqv2/curves/dmc_cartpole_balance_sparse.csv
-        python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out mt10.png
-        python plot.py maps RUN_A [RUN_B ...] --out maps.png [--frames N]   (activation maps, below)
+        python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out runs/mt10.png
+        python plot.py maps RUN_A [RUN_B ...] --out runs/maps.png [--frames N]   (activation maps, below)
 
 Arguments are run directories (holding config.json), parent folders (every folder below holding a
-config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"), and a
-group whose runs differ in any other config value (say --mask-source) is split by it, the legend
-naming the values ("sear mask_source=learned:seg.pt"); only the seed, the budget, the device and
-logging settings (NOT_A_SETTING) may differ within a line. Each line is the mean over its runs and,
-with 2+ runs, a shaded 95% t-interval of the mean (mean +- t_{0.975, n-1} * std / sqrt(n)). With runs
-on several envs and env not a grouping key, each env gets its own subplot. Success rates are drawn
-on a [0, 1] axis.
+config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"), and split
+by every other config value in which runs on the same env differ (say --mask-source); every line is
+then named by its values of all of them ("sear mask_source=learned:seg.pt"), so no line that differs
+is labelled plainly. The seed, the budget, the device, logging and how often and how long runs are
+evaluated (NOT_A_SETTING) never split a line. Each line is the mean over its runs and, with 2+ runs,
+a shaded 95% t-interval of the mean (mean +- t_{0.975, n-1} * std / sqrt(n)). With runs on several
+envs and env not a grouping key, each env gets its own subplot. Success rates are drawn on a [0, 1]
+axis. Layout (docs/figures.md): the axes keep their size whatever the legend holds; a short legend
+stays inside a single panel, a long one (or one for several panels) goes to an empty slot of the grid
+or below the panels with its labels wrapped; titles are wrapped to fit.
 
 Each run is drawn to its own end: at every frame the mean and CI are over the runs that have a value
 there (n per frame), the line is dashed where not all of them do, the table says how many reached
@@ -25,7 +28,7 @@ the last frame, and stderr warns which runs end early.
 
 --reference CSV[:LABEL] draws a published curve in DrQ-v2's format (curves/dmc_<task>.csv: seed, frame,
 episode_reward, task): its mean over seeds and a min-max band, on each panel with runs on that task
-(env cartpole-balance_sparse = task cartpole_balance_sparse).
+(env cartpole-balance_sparse = task cartpole_balance_sparse), cut to the runs' last frame.
 
 --per-task draws task-set runs (metaworld-mt3/-mt10/-mt50) one panel per task, from eval.csv's
 per-task columns (success/<task>, return/<task>), and a last panel with each run's mean over tasks.
@@ -47,6 +50,7 @@ import json
 import math
 import os
 import sys
+import textwrap
 from functools import reduce
 
 import numpy as np
@@ -194,20 +198,33 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
     return dict(sorted(groups.items()))
 
 
-# Config values that do not change what a run learns (sear.py's RESUME_MAY_CHANGE: device, budget,
-# logging), plus the seed and where the run lives: runs that differ only in these are seeds of one line.
+# Config values that do not change what a line means: the seed, the budget (each run is drawn to its own
+# end), where the run lives and how it is computed (device, threads, prefetch), what it writes (logs,
+# snapshots, videos, the buffer) and how often and how long it is evaluated (eval_every moves the points,
+# eval_episodes makes each one less noisy: the curve is an estimate of the same thing). Runs that differ
+# only in these are seeds of one line. sear.py's RESUME_MAY_CHANGE is a subset.
 NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
-                 "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate"}
+                 "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate",
+                 "eval_every", "eval_episodes", "eval_episodes_per_task"}
 
 
-def split_by_config(label: str, group: list[dict], keys: list[str]) -> dict[str, list[dict]]:
-    """One line per setting: the runs of a group split by every config value that differs among them
-    (apart from NOT_A_SETTING and the grouping keys), the label naming them, e.g.
-    "sear mask_source=learned:seg.pt". A group whose runs agree keeps its label."""
-    configs = [r["config"] for r in group]
-    names = sorted({k for c in configs for k in c} - NOT_A_SETTING - set(keys) - {"env"})
-    # A key some configs lack came with a later version of sear.py: only the runs that record it can differ in it.
-    differ = [k for k in names if len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1]
+def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
+    """The config keys that tell a panel's lines apart: those (apart from NOT_A_SETTING, the grouping
+    keys and the env) in which runs on the SAME env differ, so a value set per task (std_steps, a
+    recipe's per-task rows) does not count. A key only some runs record came with a later sear.py: only
+    the runs that record it can differ in it."""
+    by_env = {}
+    for r in runs:
+        by_env.setdefault(env_of(r), []).append(r["config"])
+    names = sorted({k for r in runs for k in r["config"]} - NOT_A_SETTING - set(keys) - {"env"})
+    return [k for k in names if any(len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1
+                                    for configs in by_env.values())]
+
+
+def split_by_config(label: str, group: list[dict], differ: list[str]) -> dict[str, list[dict]]:
+    """One line per setting: a group's runs split by the panel's differing settings (differing_settings),
+    every line named by its values of all of them, e.g. "sear mask_source=learned:seg.pt", so that no
+    line that differs from another is labelled plainly."""
     if not differ:
         return {label: group}
     lines = {}
@@ -285,9 +302,69 @@ def rate_axis(ax, ylabel: str) -> None:
         ax.set_ylim(0.0, 1.0)
 
 
+# The layout rule: every panel's axes keep AXES_HEIGHT inches whatever its titles and legend need (the figure
+# grows instead); a legend stays inside its axes only on a single panel with at most LEGEND_INSIDE entries of
+# at most LABEL_INSIDE characters, else one legend serves all panels, in the grid's empty slot or below the
+# panels, its labels wrapped to fit; titles are wrapped to their axes' width, the figure's title to the figure's.
+PANEL_SIZE = (5.0, 3.6)      # inches per panel before titles and legends
+AXES_HEIGHT = 2.6            # inches
+LEGEND_INSIDE, LABEL_INSIDE = 6, 48
+
+
+def fit_text(text, width_px: float, renderer) -> None:
+    """Wrap a matplotlib Text at spaces until it is at most width_px wide."""
+    paragraphs = text.get_text().split("\n")
+    chars = max(map(len, paragraphs))
+    while chars > 8 and text.get_window_extent(renderer).width > width_px:
+        chars -= max(1, chars // 20)
+        text.set_text("\n".join(textwrap.fill(p, chars, break_long_words=False) for p in paragraphs))
+
+
+def place_legend(fig, entries: dict, title: str | None, spare, renderer):
+    """One legend for every panel: in the grid's first empty slot (`spare`) if it fits there, else below
+    the panels; as many columns as fit, labels wrapped to a column."""
+    import matplotlib
+    where = spare if spare is not None else fig
+    width = 0.98 * where.get_window_extent(renderer).width
+    # characters per line at "small" (0.833 x the font size), about 0.6 em each
+    per_line = int(width / fig.dpi * 72 / (0.6 * 0.833 * matplotlib.rcParams["font.size"]))
+    where_args = dict(loc="upper left", frameon=False) if spare is not None else dict(loc="outside lower center")
+    longest = max(map(len, entries))
+    for ncol in range(len(entries), 0, -1):
+        chars = max(12, per_line // ncol - 6)  # room for the handle
+        if chars < longest and ncol > 1:  # fewer columns before wrapped labels
+            continue
+        labels = [textwrap.fill(label, chars, break_long_words=False) for label in entries]
+        legend = where.legend(list(entries.values()), labels, ncol=ncol, fontsize="small", title=title,
+                              title_fontsize="small", **where_args)
+        box = legend.get_window_extent(renderer)
+        if box.width <= width or ncol == 1:
+            break
+        legend.remove()
+    if spare is not None and box.height > spare.get_window_extent(renderer).height:
+        legend.remove()  # too tall for the slot: below the panels instead
+        spare.set_visible(False)
+        return place_legend(fig, entries, title, None, renderer)
+    if spare is None:  # room for it, or the layout would squeeze the axes to nothing
+        fig.set_size_inches(fig.get_figwidth(), fig.get_figheight() + box.height / fig.dpi)
+    return legend
+
+
+def keep_axes_height(fig, axes: list, rows: int) -> None:
+    """Grow the figure until its shortest axes is AXES_HEIGHT inches tall (the layout runs again on each draw)."""
+    for _ in range(4):
+        fig.canvas.draw()
+        short = AXES_HEIGHT - min(ax.get_position().height for ax in axes) * fig.get_figheight()
+        if short <= 0.01:
+            return
+        fig.set_size_inches(fig.get_figwidth(), fig.get_figheight() + short * rows + 0.05)
+
+
 def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None,
-         references: dict | None = None, estimates: dict | None = None):
-    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's title)."""
+         references: dict | None = None, estimates: dict | None = None, ylabels: dict | None = None):
+    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's title, or
+    the panels' titles where panels differ); ylabels: {panel: its y-label} where not `ylabel`. Each
+    --reference curve is cut to the last frame of its panel's runs."""
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
@@ -297,29 +374,47 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
     colors = {label: f"C{i % 10}" for i, label in enumerate(labels)}  # same group, same color
     cols = min(len(panels), 3)
     rows = math.ceil(len(panels) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
-    for ax, (panel, curves) in zip(axes.flat, panels.items()):
-        dashed = False
+    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows), squeeze=False,
+                             layout="constrained")
+    used = list(axes.flat[:len(panels)])
+    what = {panel: (estimates or {}).get(panel, "mean ± 95% CI") for panel in panels}
+    one_estimate = len(set(what.values())) == 1
+    dashed, entries, others = False, {}, {}  # the legend: the lines first, then baselines and references
+    for ax, (panel, curves) in zip(used, panels.items()):
         for label, (frames, mean, ci, n, _env) in curves.items():
             dashed |= draw_line(ax, frames, mean, ci, n, colors[label], label)
+        entries.update((label, h) for h, label in zip(*ax.get_legend_handles_labels()) if label not in entries)
         if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
             ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
+        last = max((c[0][-1] for c in curves.values()), default=None)
         for i, ref in enumerate((references or {}).get(panel, [])):  # --reference: published curves
-            draw_reference(ax, ref, i)
-        ax.set_title(panel if len(panels) > 1 else title)
+            draw_reference(ax, ref, i, upto=last)
+        ax.set_title((panel if len(panels) > 1 else title) + ("" if one_estimate else f"\n{what[panel]}"))
         ax.set_xlabel("frames")
-        ax.set_ylabel(ylabel)
+        ax.set_ylabel((ylabels or {}).get(panel, ylabel))
         ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
         ax.grid(alpha=0.3)
-        rate_axis(ax, ylabel)
-        estimate = (estimates or {}).get(panel, "mean ± 95% CI")
-        ax.legend(fontsize="small", title=estimate + ("; dashed: fewer runs" if dashed else ""),
-                  title_fontsize="small")
+        rate_axis(ax, ax.get_ylabel())
+        others.update((label, h) for h, label in zip(*ax.get_legend_handles_labels()) if label not in entries)
+    entries.update(others)
     for ax in axes.flat[len(panels):]:
-        ax.set_visible(False)
-    if len(panels) > 1:
-        fig.suptitle(title)
-    fig.tight_layout()
+        ax.axis("off")
+    suptitle = fig.suptitle(title) if len(panels) > 1 else None
+    legend_title = "; ".join([*([next(iter(what.values()))] if one_estimate else []),
+                              *(["dashed: fewer runs"] if dashed else [])])
+    renderer = fig.canvas.get_renderer()
+    if len(panels) == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries), default=0) <= LABEL_INSIDE:
+        used[0].legend(fontsize="small", title=legend_title or None, title_fontsize="small")
+    elif entries:
+        fig.canvas.draw()  # the layout: the empty slot's size
+        spare = axes.flat[len(panels)] if len(panels) < axes.size else None
+        place_legend(fig, entries, legend_title or None, spare, renderer)
+    fig.canvas.draw()
+    for ax in used:
+        fit_text(ax.title, ax.get_window_extent(renderer).width, renderer)
+    if suptitle is not None:
+        fit_text(suptitle, 0.98 * fig.get_figwidth() * fig.dpi, renderer)
+    keep_axes_height(fig, used, rows)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=120)
     plt.close(fig)
@@ -414,13 +509,16 @@ def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]
     return drawn
 
 
-def draw_reference(ax, ref: dict, i: int = 0):
-    """A published curve: the mean over its seeds and a band from its lowest to its highest seed. The
-    x range stays the runs' (once they span any frames): a published curve usually goes on far beyond them."""
+def draw_reference(ax, ref: dict, i: int = 0, upto: float | None = None):
+    """A published curve: the mean over its seeds and a band from its lowest to its highest seed, cut to
+    frames <= `upto` (the runs' last frame: a published curve usually goes on far beyond them, and its
+    later values would set the y range). The x range stays the runs' (once they span any frames)."""
     xlim = ax.get_xlim()
-    ax.plot(ref["frames"], ref["mean"], color="k", ls=(":", "-.", "--")[i % 3], lw=1.5, marker="x", ms=4,
+    keep = slice(None) if upto is None else ref["frames"] <= upto
+    frames = ref["frames"][keep]
+    ax.plot(frames, ref["mean"][keep], color="k", ls=(":", "-.", "--")[i % 3], lw=1.5, marker="x", ms=4,
             label=f"{ref['label']} (n={ref['seeds']}: mean, min-max)")
-    ax.fill_between(ref["frames"], ref["min"], ref["max"], color="k", alpha=0.08, lw=0)
+    ax.fill_between(frames, ref["min"][keep], ref["max"][keep], color="k", alpha=0.08, lw=0)
     if xlim[1] >= 1:
         ax.set_xlim(xlim)
 
@@ -628,7 +726,7 @@ def maps_main(argv) -> int:
                            "convolution for one or more runs on the same frames (the paper's section 5), "
                            "and each channel's share of activation on the robot.")
     parser.add_argument("runs", nargs="+", help="run directories (config.json and snapshot.pt), all on one env")
-    parser.add_argument("--out", default="maps.png", help="PNG to write (default maps.png)")
+    parser.add_argument("--out", default="runs/maps.png", help="PNG to write (default runs/maps.png)")
     parser.add_argument("--frames", type=int, default=2, help=f"frames to show, {MAPS_STRIDE} agent steps apart")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     args = parser.parse_args(argv)
@@ -688,7 +786,7 @@ def main(argv=None) -> int:
     parser = OneLineParser(prog="plot.py", description=__doc__.split("\n\n")[0],
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
-    parser.add_argument("--out", default="curves.png", help="PNG to write (default curves.png)")
+    parser.add_argument("--out", default="runs/curves.png", help="PNG to write (default runs/curves.png)")
     parser.add_argument("--metric", default="return", help="return | success")
     parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
     parser.add_argument("--group", default="method", help="config keys, comma separated: method,env")
@@ -742,8 +840,9 @@ def main(argv=None) -> int:
         panels = {}
         for panel, members in keyed.items():
             panels[panel] = {}
+            differ = differing_settings(members, keys)
             for label, group in (line for g in group_runs(members, keys).items()
-                                 for line in split_by_config(*g, keys).items()):
+                                 for line in split_by_config(*g, differ).items()):
                 seeds = [r["config"].get("seed") for r in group]
                 if len(set(seeds)) < len(seeds):
                     print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)

@@ -7,13 +7,17 @@ their last snapshot, and no key ever runs twice at once.
 Usage:
   python sweep.py --grid kitchen                        # a named grid of the paper (see --help)
   python sweep.py --envs walker-walk cup-catch --methods sear drq --seeds 1-5 -- --frames 100000
-  python sweep.py --grid kitchen --status               # queued / running / done / failed
+  python sweep.py --grid kitchen --status               # queued / running / done / failed (the flags the
+                                                        # sweep ran with need not be repeated: sweep.json has them)
   python sweep.py --grid kitchen --report               # per task mean +- 95% CI; over tasks IQM (rliable)
   python sweep.py --grid kitchen --partition gpu        # on SLURM (detected through `srun`)
 
 Flags that sweep.py does not know go to sear.py (after `--` or anywhere on the line); sear.py's
 own parser checks them before anything is created, so a typo fails the whole sweep at once.
 
+Sweep folder: <out>/<sweep>/ (--name; default the grid's name, else custom)
+  sweep.json    the record of what was submitted there: per sweep (grid and sear.py flags) its jobs, so
+                that --status and --report need only the folder (--name or --grid), not the flags again
 Job directory: <out>/<sweep>/<env>__<method>__<seed>__<hash of the other sear.py flags>/
   job.json      what the job is: the sear.py arguments of a fresh run and of a resume
   run/          sear.py's --run-root: exactly one run directory
@@ -239,6 +243,18 @@ def resume_flags(cfg) -> tuple[str, ...]:
     return tuple(flags)
 
 
+def plural(n: int, word: str) -> str:
+    return f"{n} {word}{'s' * (n != 1)}"
+
+
+def sweep_name(args) -> str:
+    """The sweep's folder under --out: --name, else the grid's name, else custom."""
+    sweep = args.name or args.grid or "custom"
+    if not SAFE_NAME.fullmatch(sweep) or sweep.endswith(".aside"):
+        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_' or '-' (and not end in .aside)")
+    return sweep
+
+
 def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]:
     """(sweep name, jobs, grid) from the command line. Checks everything; creates nothing."""
     grid = None
@@ -250,9 +266,7 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
         grid = GRIDS[args.grid]
     elif not (args.envs and args.methods):
         raise SweepError("give --grid NAME, or --envs and --methods")
-    sweep = args.name or args.grid or "custom"
-    if not SAFE_NAME.fullmatch(sweep) or sweep.endswith(".aside"):
-        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_' or '-' (and not end in .aside)")
+    sweep = sweep_name(args)
 
     envs = parse_names(args.envs) if args.envs else None
     wanted = parse_names(args.methods) if args.methods else None
@@ -430,6 +444,38 @@ def mark_queued(job_dir: str, by: dict) -> None:
 
 def is_done(job_dir: str) -> bool:
     return os.path.exists(os.path.join(job_dir, "DONE"))
+
+
+# The sweep folder's record (sweep.json): {"sweeps": [{"grid", "flags", "command", "jobs"}]}, one entry per
+# grid and sear.py flags submitted to the folder, its jobs the JobSpecs of every submission with them.
+RECORD = "sweep.json"
+
+
+def read_record(sweep_dir: str) -> list[dict]:
+    return (read_json(os.path.join(sweep_dir, RECORD)) or {}).get("sweeps", [])
+
+
+def record_sweep(sweep_dir: str, grid: str | None, flags: list[str], command: list[str], specs: list[JobSpec]) -> int:
+    """Add `specs` to the folder's record, under their grid and sear.py flags: the same sweep run again
+    (say for more seeds) adds its jobs to its entry; other flags make a second entry. -> sweeps recorded."""
+    os.makedirs(sweep_dir, exist_ok=True)
+    with guard(sweep_dir):  # two drivers submitting to one folder at once both end up in the record
+        sweeps = read_record(sweep_dir)
+        entry = next((e for e in sweeps if e["grid"] == grid and e["flags"] == list(flags)), None)
+        if entry is None:
+            entry = {"grid": grid, "flags": list(flags), "jobs": []}
+            sweeps.append(entry)
+        entry["command"] = list(command)
+        jobs = {j["name"]: j for j in entry["jobs"]}
+        jobs.update({s.name: {"name": s.name, **dataclasses.asdict(s)} for s in specs})
+        entry["jobs"] = list(jobs.values())
+        write_json(os.path.join(sweep_dir, RECORD), {"sweeps": sweeps})
+    return len(sweeps)
+
+
+def recorded_specs(entry: dict) -> list[JobSpec]:
+    fields = [f.name for f in dataclasses.fields(JobSpec)]
+    return [JobSpec(**{k: tuple(j[k]) if isinstance(j[k], list) else j[k] for k in fields}) for j in entry["jobs"]]
 
 
 # ================================================================================================
@@ -848,7 +894,7 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
         scores[v] = np.array([[normalised[(e, v)][s][1][np.isin(normalised[(e, v)][s][0], frames)]
                                for e in envs] for s in seeds])
         seeds_of[v] = (seeds, frames)
-    overall = f"over {len(envs)} task{'s' * (len(envs) > 1)}: IQM of normalised scores, bootstrap 95% CI"
+    overall = f"over {plural(len(envs), 'task')}"
     aggregate_rows = ["| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|"]
     if scores:
         panels[overall] = {}
@@ -861,8 +907,11 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
             aggregate_rows.append(f"| {v} | {runs_of} | {frames[-1]:.0f} | {iqm} | {mean} |")
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     png = os.path.join(out, sweep, "report.png")
-    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel}; per task mean ± 95% CI over seeds, over tasks IQM "
-                                   f"(stratified bootstrap 95% CI)", estimates={overall: "IQM, bootstrap 95% CI"})
+    # Per task the raw scores; over the tasks the IQM of the normalised ones (report.md says how each task is).
+    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised per "
+                                   f"task to 0-1 (report.md says how)", ylabels={overall: "IQM of normalised score"},
+              estimates={**{e: "mean ± 95% CI over seeds" for e in envs},
+                         overall: "IQM, stratified-bootstrap 95% CI"})
     per_task = plot.summary_table({e: panels[e] for e in envs}, metric)
     norm_rows = ["| task | normalised score |", "|---|---|", *(f"| {e} | {how[e]} |" for e in envs)]
     tables = "\n\n".join([per_task, "\n".join(aggregate_rows), "\n".join(norm_rows)])
@@ -923,29 +972,113 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def load_specs(out: str, sweep: str) -> list[JobSpec]:
-    """The jobs a sweep folder already holds (for --status / --report without a grid or envs)."""
-    root = os.path.join(out, sweep)
-    if not os.path.isdir(root):
-        raise SweepError(f"no sweep folder {root}; give --grid or --envs/--methods, or the --name of a sweep")
+def folder_specs(sweep_dir: str) -> list[JobSpec]:
+    """The jobs a sweep folder holds, from their job.json (folders from before sweep.json)."""
     specs = []
-    for name in sorted(os.listdir(root)):
-        data = read_json(os.path.join(root, name, "job.json"))
+    for name in sorted(os.listdir(sweep_dir)) if os.path.isdir(sweep_dir) else []:
+        data = read_json(os.path.join(sweep_dir, name, "job.json"))
         if data:
             specs.append(JobSpec(**{f.name: data[f.name] for f in dataclasses.fields(JobSpec)}))
     return specs
+
+
+def show_command(args, verb: str, sweep: str, grid: str | None, flags: list[str]) -> str:
+    """The sweep.py line that shows one sweep of a folder: --status or --report with its flags."""
+    line = ["python", "sweep.py", *(["--out", args.out] if args.out != "sweeps" else []),
+            *(["--grid", grid] if grid else []), *(["--name", sweep] if sweep != (grid or "custom") else []),
+            f"--{verb}", *(["--", *flags] if flags else [])]
+    return shlex.join(line)
+
+
+def other_sweeps(args, verb: str) -> str:
+    """What else --out holds, as the commands that show it."""
+    names = sorted(n for n in os.listdir(args.out) if os.path.isdir(os.path.join(args.out, n))
+                   and (read_record(os.path.join(args.out, n)) or folder_specs(os.path.join(args.out, n)))) \
+        if os.path.isdir(args.out) else []
+    if not names:
+        return f"{args.out} holds no sweep yet"
+    return f"{args.out} holds {', '.join(names)}: " + "; ".join(show_command(args, verb, n, None, []) for n in names)
+
+
+def spelled_out(flags: list[str]) -> list[str]:
+    """--frames=40 as --frames 40: one spelling of the same flags."""
+    return [part for flag in flags for part in (flag.split("=", 1) if flag.startswith("--") else [flag])]
+
+
+def listed(args, verb: str, sweep: str, entries: list[dict]) -> str:
+    return "; ".join(f"{show_command(args, verb, sweep, e['grid'], e['flags'])} ({plural(len(e['jobs']), 'job')})"
+                     for e in entries)
+
+
+def find_sweep(args, flags: list[str], verb: str) -> tuple[list[JobSpec], Grid | None]:
+    """--status / --report: the jobs of the sweep that --name / --grid names, from the folder's record
+    (sweep.json): its flags need not be given again. Where the folder holds several, the flags (none:
+    the one run without any) or --grid pick one. Flags that match none of its sweeps, several left, or no
+    sweep at all: SweepError naming the folder's sweeps and the command that shows each."""
+    sweep = sweep_name(args)
+    folder = os.path.join(args.out, sweep)
+    entries = read_record(folder)
+    if not entries:
+        return unrecorded_sweep(args, flags, verb, sweep, folder)
+    if args.grid and not any(e["grid"] == args.grid for e in entries):
+        raise SweepError(f"{folder} holds no sweep of grid {args.grid}; it holds: {listed(args, verb, sweep, entries)}")
+    chosen = [e for e in entries if e["grid"] == args.grid] if args.grid else entries
+    same = [e for e in chosen if spelled_out(e["flags"]) == spelled_out(flags)]
+    if flags and not same and (args.grid or (args.envs and args.methods)):  # the same flags spelled otherwise
+        names = {s.name for s in plan(args, flags)[1]}
+        same = [e for e in chosen if names & {j["name"] for j in e["jobs"]}]
+    if flags and not same:
+        raise SweepError(f"{folder} holds no sweep run with `-- {shlex.join(flags)}`; it holds: "
+                         f"{listed(args, verb, sweep, chosen)}")
+    if len(chosen) > 1 and len(same) != 1:
+        raise SweepError(f"{folder} holds {len(chosen)} sweeps, show one: {listed(args, verb, sweep, chosen)}")
+    if len(chosen) > 1:
+        print(f"note: {folder} also holds: {listed(args, verb, sweep, [e for e in chosen if e is not same[0]])}")
+    entry = same[0] if same else chosen[0]
+    return select(args, recorded_specs(entry), folder), GRIDS.get(entry["grid"])
+
+
+def select(args, specs: list[JobSpec], folder: str) -> list[JobSpec]:
+    """The jobs --envs / --methods / --seeds pick from a recorded sweep."""
+    envs = parse_names(args.envs) if args.envs else None
+    methods = parse_names(args.methods) if args.methods else None
+    seeds = parse_seeds(args.seeds) if args.seeds else None
+    picked = [s for s in specs if (envs is None or s.env in envs) and (methods is None or s.variant in methods)
+              and (seeds is None or s.seed in seeds)]
+    if not picked:
+        def have(values):
+            return ", ".join(map(str, dict.fromkeys(values)))
+        raise SweepError(f"the sweep in {folder} has none of these jobs: it has envs {have(s.env for s in specs)}; "
+                         f"methods {have(s.variant for s in specs)}; seeds {have(s.seed for s in specs)}")
+    return picked
+
+
+def unrecorded_sweep(args, flags: list[str], verb: str, sweep: str, folder: str):
+    """A folder without sweep.json: made before sweep.py recorded its sweeps, or never submitted to."""
+    held = folder_specs(folder)
+    if not held:
+        raise SweepError(f"no sweep in {folder}; {other_sweeps(args, verb)}")
+    if not (args.grid or args.envs or args.methods or flags):
+        return held, None
+    _, specs, grid = plan(args, flags)
+    if not {s.name for s in specs} & {s.name for s in held}:
+        raise SweepError(f"{folder} holds {len(held)} jobs, none of those these arguments name, and no {RECORD} "
+                         f"(the record of its flags, which older sweeps lack): give the sweep's own flags after --, "
+                         f"or show all of its jobs: {show_command(args, verb, sweep, None, [])}")
+    return specs, grid
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, after = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
     args, unknown = build_parser().parse_known_args(ours)
+    args.flags, args.argv = unknown + after, argv
     try:
-        if not (args.grid or args.envs or args.methods) and (args.status or args.report) and not unknown + after:
-            args.sweep = args.name or "custom"
-            specs, grid = load_specs(args.out, args.sweep), None
+        if args.status or args.report:  # a sweep already submitted: its record knows the flags
+            args.sweep = sweep_name(args)
+            specs, grid = find_sweep(args, args.flags, "status" if args.status else "report")
         else:
-            args.sweep, specs, grid = plan(args, unknown + after)
+            args.sweep, specs, grid = plan(args, args.flags)
         if args.status:
             print(status_table(args.out, specs))
             return 0
@@ -979,6 +1112,10 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
         for s in todo:
             print(f"{s.name}: sear.py {shlex.join(s.args)}")
         return 0
+    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs)
+    if held > 1:
+        print(f"note: {sweep_dir} now holds {held} sweeps (other grids or sear.py flags); --status and --report "
+              f"then need the sweep's flags after -- to pick one")
     if not todo:
         if engine == "local" and not busy:
             report(args.out, args.sweep, specs, grid.metric if grid else None)

@@ -302,15 +302,15 @@ def test_reference_is_drawn_on_the_panel_of_its_task_only(tmp_path, capsys, monk
     path = write_published(tmp_path / "dmc_cartpole_balance_sparse.csv", published_rows())
     drawn = []
     real = plot.draw_reference
-    monkeypatch.setattr(plot, "draw_reference", lambda ax, ref, i=0: drawn.append((ax.get_title(), ref, ax))
-                        or real(ax, ref, i))
+    monkeypatch.setattr(plot, "draw_reference", lambda ax, ref, i=0, upto=None: drawn.append((ax.get_title(), ref, ax))
+                        or real(ax, ref, i, upto))
     code, _, err = run_main(capsys, root, "--out", tmp_path / "x.png", "--reference", f"{path}:DrQ-v2 paper")
     assert code == 0, err
     assert [(title, ref["label"]) for title, ref, _ in drawn] == [("", "DrQ-v2 paper")]  # title is set after
     ax = drawn[0][2]
     assert ax.get_title() == "cartpole-balance_sparse"
     mean_line = next(line for line in ax.get_lines() if line.get_label().startswith("DrQ-v2 paper"))
-    np.testing.assert_allclose(mean_line.get_ydata(), [40, 400, 950])
+    np.testing.assert_allclose(mean_line.get_ydata(), [40, 400])  # cut to the runs' 30k frames
     assert mean_line.get_label() == "DrQ-v2 paper (n=3: mean, min-max)"
     assert ax.get_xlim()[1] < 40000  # the runs' range (30k frames), not the published curve's
     assert (tmp_path / "x.png").read_bytes().startswith(PNG_MAGIC)
@@ -432,3 +432,100 @@ def test_per_task_adds_a_panel_with_the_mean_over_tasks(tmp_path, capsys):
                         f"{plot.t_quantile(0.975, 1) * np.std([0.4, 0.7], ddof=1) / math.sqrt(2):.3g} |")
     assert [r.split(" | ")[0] for r in rows] == ["| metaworld-mt3: hammer", "| metaworld-mt3: door-open",
                                                  "| metaworld-mt3: mean over 2 tasks"]
+
+
+def test_a_reference_is_cut_to_the_frames_of_the_runs(tmp_path, capsys, monkeypatch):
+    """A published curve goes on far beyond short runs: its later points must not set the y range."""
+    root = tmp_path / "runs"
+    for seed in (1, 2):
+        make_run(root, "cartpole-balance_sparse", "drq", seed, frames=(0, 10000, 20000, 30000))
+    later = [("cartpole_balance_sparse", s, f, 5000.0) for s in (1, 2, 3) for f in (100000, 500000)]
+    path = write_published(tmp_path / "dmc_cartpole_balance_sparse.csv", published_rows() + later)
+    figures = saved_figures(monkeypatch)
+    code, _, err = run_main(capsys, root, "--out", tmp_path / "x.png", "--reference", path)
+    assert code == 0, err
+    (ax,) = [ax for ax in figures[0][0].axes if ax.get_lines()]
+    ref = next(line for line in ax.get_lines() if "published" in line.get_label())
+    assert ref.get_xdata().max() <= 30000 and list(ref.get_ydata()) == [40, 400]
+    assert ax.get_ylim()[1] < 1000  # the band up to 700 at 20k frames, not the 5000 at 100k and beyond
+
+
+# ---------------------------------------------------------------- labels and layout
+def saved_figures(monkeypatch) -> list:
+    """Every figure plot.py saves, with the renderer it was drawn with, for measuring after it is written."""
+    import matplotlib.figure
+    figures = []
+    real = matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig",
+                        lambda fig, *a, **k: (real(fig, *a, **k), figures.append((fig, fig.canvas.get_renderer()))))
+    return figures
+
+
+def inside(box, outer, slack=1.0) -> bool:
+    return box.x0 >= outer.x0 - slack and box.y0 >= outer.y0 - slack and box.x1 <= outer.x1 + slack \
+        and box.y1 <= outer.y1 + slack
+
+
+def line_labels(out: str) -> list[str]:
+    return [line.split(" | ")[1] for line in out.splitlines() if line.startswith("| walker-walk")]
+
+
+def test_evaluation_and_logging_settings_do_not_split_lines(tmp_path, capsys):
+    root = tmp_path / "runs"
+    set_config(make_run(root, "walker-walk", "sear", 1), eval_every=10000, eval_episodes=10, threads=1)
+    set_config(make_run(root, "walker-walk", "sear", 2), eval_every=5000, eval_episodes=2, threads=4,
+               eval_episodes_per_task=3, log_every=1.0)
+    code, out, err = run_main(capsys, root, "--out", tmp_path / "x.png")
+    assert code == 0, err
+    assert line_labels(out) == ["sear"]
+
+
+def test_every_line_that_differs_from_another_says_so(tmp_path, capsys):
+    """drq's runs agree among themselves but differ from sear's in batch_size: drq's line says so too.
+    std_steps differs only between envs (a per-task default): it names no line."""
+    root = tmp_path / "runs"
+    for seed in (1, 2):
+        set_config(make_run(root, "walker-walk", "sear", seed), batch_size=16, mask_source="sim")
+        set_config(make_run(root, "walker-walk", "sear", seed + 2), batch_size=16, mask_source="learned:seg.pt")
+        set_config(make_run(root, "walker-walk", "drq", seed), batch_size=256, mask_source="sim")
+        set_config(make_run(root, "cheetah-run", "drq", seed), batch_size=256, mask_source="sim", std_steps=500000)
+    code, out, err = run_main(capsys, root, "--out", tmp_path / "x.png", "--group", "method,env")
+    assert code == 0, err
+    assert line_labels(out) == ["drq / walker-walk batch_size=256 mask_source=sim",
+                                "sear / walker-walk batch_size=16 mask_source=learned:seg.pt",
+                                "sear / walker-walk batch_size=16 mask_source=sim"]
+    assert [line.split(" | ")[1] for line in out.splitlines() if line.startswith("| cheetah-run")] == [
+        "drq / cheetah-run batch_size=256 mask_source=sim"]
+
+
+@pytest.mark.parametrize("settings", [3, 6, 12])
+def test_axes_keep_their_size_and_titles_fit_whatever_the_legend_holds(tmp_path, capsys, monkeypatch, settings):
+    """The layout rule: with lines that differ in many settings, and a title longer than the figure is
+    wide, the axes stay as wide and as tall as with plain labels, and the title and legend lie inside the
+    figure."""
+    figures = saved_figures(monkeypatch)
+    plain = tmp_path / "plain"
+    for seed in (1, 2):
+        make_run(plain, "walker-walk", "sear", seed)
+    code, _, err = run_main(capsys, plain, "--out", tmp_path / "plain.png")
+    assert code == 0, err
+    root = tmp_path / "runs"
+    for line in range(4):
+        for seed in (1, 2):
+            set_config(make_run(root, "walker-walk", "sear", 10 * line + seed),
+                       **{f"setting_{k:02d}": f"value-{line}" for k in range(settings)})
+    title = "A title much longer than the figure is wide, as a sweep of many settings may well need " * 2
+    code, out, err = run_main(capsys, root, "--out", tmp_path / "x.png", "--title", title)
+    assert code == 0, err
+    assert len(line_labels(out)) == 4
+    sizes = []
+    for fig, renderer in figures:
+        (ax,) = [ax for ax in fig.axes if ax.get_lines()]
+        box = ax.get_position()
+        sizes.append((box.width * fig.get_figwidth(), box.height * fig.get_figheight(), box.width))
+        assert inside(ax.title.get_window_extent(renderer), fig.bbox), ax.title.get_text()
+        for legend in [*fig.legends, *(a.get_legend() for a in fig.axes if a.get_legend())]:
+            assert inside(legend.get_window_extent(renderer), fig.bbox)
+    (plain_w, plain_h, _), (w, h, width_share) = sizes
+    assert w >= 0.95 * plain_w and h >= 0.95 * plain_h and h >= plot.AXES_HEIGHT - 0.01, sizes
+    assert width_share >= 0.75, "the axes' share of the figure's width"

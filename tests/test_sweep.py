@@ -6,6 +6,7 @@ import csv
 import json
 import os
 import re
+import shlex
 import shutil
 import signal
 import stat
@@ -567,26 +568,37 @@ def test_report_success_rates_per_task_and_rliable_over_tasks(tmp_path):
     assert (out / "g" / "report.png").exists()
 
 
-def test_report_figure_says_what_each_panel_shows(tmp_path, monkeypatch):
-    """Per task a mean with its t-interval, over the tasks the IQM with its bootstrap CI: the legend of
-    each panel names its own estimate."""
-    import matplotlib.axes
-    titles = {}
-    real_legend = matplotlib.axes.Axes.legend
-
-    def legend(ax, *args, **kwargs):
-        titles[ax.get_title()] = kwargs.get("title")
-        return real_legend(ax, *args, **kwargs)
-
-    monkeypatch.setattr(matplotlib.axes.Axes, "legend", legend)
+def test_report_figure_says_what_each_panel_shows_and_its_titles_fit(tmp_path, monkeypatch):
+    """Per task a mean with its t-interval on the raw scores, over the tasks the IQM of normalised scores
+    with its bootstrap CI: each panel's title and y-label say which, and every title lies inside the figure
+    (with 2 tasks the aggregate panel is the third, at the figure's right edge)."""
+    import matplotlib.figure
+    saved = []
+    real = matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig",
+                        lambda fig, *a, **k: (real(fig, *a, **k), saved.append((fig, fig.canvas.get_renderer()))))
     out = tmp_path / "sweeps"
     specs = fake_finished_runs(out, {
-        "metaworld-hammer": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.1 * s}"]),
+        "metaworld-button-press-topdown-wall": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.1 * s}"]),
         "metaworld-door-open": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.3 * s}"])})
-    sweep.report(str(out), "g", specs, None)
-    assert titles["metaworld-hammer"] == titles["metaworld-door-open"] == "mean ± 95% CI"
-    overall = next(t for t in titles if t.startswith("over 2 tasks"))
-    assert titles[overall] == "IQM, bootstrap 95% CI"
+    sweep.report(str(out), "a-sweep-with-a-long-name", specs, None)
+    ((fig, renderer),) = saved
+    panels = {ax.get_title().split("\n")[0]: ax for ax in fig.axes if ax.get_lines()}
+    assert list(panels) == ["metaworld-button-press-topdown-wall", "metaworld-door-open", "over 2 tasks"]
+    for name in ("metaworld-button-press-topdown-wall", "metaworld-door-open"):
+        assert panels[name].get_ylabel() == "eval success rate"
+        assert "mean ± 95% CI" in panels[name].get_title()
+    assert panels["over 2 tasks"].get_ylabel() == "IQM of normalised score"
+    assert "IQM" in panels["over 2 tasks"].get_title() and "bootstrap 95% CI" in panels["over 2 tasks"].get_title()
+    titles = [ax.title for ax in panels.values()] + [fig._suptitle]
+    for title in titles:
+        box = title.get_window_extent(renderer)
+        assert fig.bbox.x0 <= box.x0 and box.x1 <= fig.bbox.x1 and box.y1 <= fig.bbox.y1, title.get_text()
+    for ax in panels.values():  # and no title runs over its neighbour's
+        box, axes_box = ax.title.get_window_extent(renderer), ax.get_window_extent(renderer)
+        assert box.x0 >= axes_box.x0 - 1 and box.x1 <= axes_box.x1 + 1, ax.get_title()
+    legend = fig.legends[0] if fig.legends else next(ax.get_legend() for ax in fig.axes if ax.get_legend())
+    assert [t.get_text() for t in legend.get_texts()] == ["sear (n=3)"]
 
 
 def test_report_normalises_returns_by_the_tasks_max_or_min_max(tmp_path):
@@ -602,3 +614,96 @@ def test_report_normalises_returns_by_the_tasks_max_or_min_max(tmp_path):
     assert point == pytest.approx(iqm(scores), abs=5e-4) and mean == pytest.approx(np.mean(scores), abs=5e-4)
     assert sweep.dm_control_max({"max_episode_steps": 10, "action_repeat": 2}) == 20
     assert sweep.dm_control_max({"max_episode_steps": 0, "action_repeat": 8}) == 1000
+
+
+# ------------------------------------------------------------------------------- finding a sweep from its folder
+FINISHES = """import json, os, sys
+a = sys.argv[1:]
+root, env, method, seed = (a[a.index(f) + 1] for f in ("--run-root", "--env", "--method", "--seed"))
+run = os.path.join(root, f"{env}__{method}__{seed}__x")
+os.makedirs(run)
+with open(os.path.join(run, "config.json"), "w") as f:
+    json.dump({"env": env, "method": method, "seed": int(seed), "action_repeat": 2}, f)
+with open(os.path.join(run, "eval.csv"), "w") as f:
+    f.write("frame,return\\n0,1\\n40,%d\\n" % (10 * int(seed)))
+"""
+
+
+@pytest.fixture
+def finished_sweep(tmp_path, monkeypatch, capsys):
+    """A sweep of 2 envs x 2 methods x 2 seeds with trailing sear.py flags, run to the end by a stand-in
+    sear.py; -> (its --out, the sweep.py arguments without those flags, the flags)."""
+    fake = tmp_path / "fake_sear.py"
+    fake.write_text(FINISHES)
+    monkeypatch.setattr(sweep, "SEAR_PY", str(fake))
+    out = tmp_path / "sweeps"
+    args = ["--out", str(out), "--envs", "walker-walk", "cup-catch", "--methods", "drq", "sear", "--seeds", "1-2"]
+    flags = ["--frames", "40", "--batch-size", "8"]
+    assert sweep.main([*args, "--engine", "local", "--jobs", "2", "--", *flags]) == 0
+    assert "8 of 8 jobs finished" in capsys.readouterr().out
+    return out, args, flags
+
+
+def test_status_and_report_find_a_sweeps_runs_without_its_flags(finished_sweep, capsys):
+    out, args, flags = finished_sweep
+    for argv in (args, ["--out", str(out)], [*args, "--", *flags], ["--out", str(out), "--", "--frames=40",
+                 "--batch-size=8"], [*args, "--", "--batch-size=8", "--frames=40"]):  # any spelling, any order
+        assert sweep.main(["--status", *argv]) == 0, argv
+        assert capsys.readouterr().out.splitlines()[-1] == "8 jobs: 8 done", argv
+    record = json.loads((out / "custom" / "sweep.json").read_text())
+    assert [(e["grid"], e["flags"], len(e["jobs"])) for e in record["sweeps"]] == [(None, flags, 8)]
+    assert sweep.main([*args, "--methods", "sear", "--seeds", "2", "--status"]) == 0  # a subset of the record
+    assert capsys.readouterr().out.splitlines()[-1] == "2 jobs: 2 done"
+    (out / "custom" / "report.md").unlink()
+    assert sweep.main([*args, "--report"]) == 0
+    assert "8 of 8 jobs finished" in capsys.readouterr().out and (out / "custom" / "report.md").exists()
+
+
+def test_flags_that_disagree_with_the_record_are_one_line_naming_the_sweep(finished_sweep, capsys):
+    out, args, flags = finished_sweep
+    assert sweep.main([*args, "--status", "--", "--frames", "80"]) == 2
+    err = capsys.readouterr().err
+    shown = f"python sweep.py --out {out} --status -- --frames 40 --batch-size 8 (8 jobs)"
+    assert err == f"sweep.py: error: {out / 'custom'} holds no sweep run with `-- --frames 80`; it holds: {shown}\n"
+    assert sweep.main([*args, "--grid", "kitchen", "--name", "custom", "--report"]) == 2
+    assert "holds no sweep of grid kitchen" in capsys.readouterr().err
+
+
+def test_a_folder_with_several_sweeps_names_the_command_that_shows_each(finished_sweep, capsys):
+    out, args, flags = finished_sweep
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--engine", "local",
+                       "--", "--frames", "20"]) == 0
+    assert f"note: {out / 'custom'} now holds 2 sweeps" in capsys.readouterr().out
+    assert sweep.main(["--out", str(out), "--report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"sweep.py: error: {out / 'custom'} holds 2 sweeps, show one: ")
+    commands = re.findall(r"(python sweep.py [^(;]*) \(", err)
+    assert commands == [f"python sweep.py --out {out} --report -- --frames 40 --batch-size 8",
+                        f"python sweep.py --out {out} --report -- --frames 20"]
+    for command, jobs in zip(commands, (8, 1)):
+        assert sweep.main([a.replace("--report", "--status") for a in shlex.split(command)[2:]]) == 0, command
+        assert capsys.readouterr().out.splitlines()[-1] == f"{jobs} jobs: {jobs} done"
+    # One run without sear.py flags: no flags pick it, and the line says what else the folder holds.
+    assert sweep.main(["--out", str(out), "--envs", "cup-catch", "--methods", "sear", "--engine", "local"]) == 0
+    capsys.readouterr()
+    assert sweep.main(["--out", str(out), "--status"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].startswith(f"note: {out / 'custom'} also holds: python sweep.py --out {out} --status "
+                                 f"-- --frames 40")
+    assert printed[-1] == "1 jobs: 1 done" and printed[-2].startswith("cup-catch__sear__1__")
+
+
+def test_an_old_sweep_folder_without_the_record_says_which_command_shows_it(finished_sweep, capsys):
+    out, args, flags = finished_sweep
+    (out / "custom" / "sweep.json").unlink(missing_ok=True)  # as sweep folders were before sweep.py kept it
+    assert sweep.main([*args, "--status"]) == 2
+    assert capsys.readouterr().err == (
+        f"sweep.py: error: {out / 'custom'} holds 8 jobs, none of those these arguments name, and no sweep.json (the "
+        f"record of its flags, which older sweeps lack): give the sweep's own flags after --, or show all of its "
+        f"jobs: python sweep.py --out {out} --status\n")
+    for argv in (["--out", str(out)], [*args, "--", *flags]):  # both still work
+        assert sweep.main(["--status", *argv]) == 0
+        assert capsys.readouterr().out.splitlines()[-1] == "8 jobs: 8 done"
+    assert sweep.main(["--out", str(out), "--grid", "kitchen", "--status"]) == 2  # never run: nothing to show
+    assert capsys.readouterr().err == (f"sweep.py: error: no sweep in {out / 'kitchen'}; {out} holds custom: "
+                                       f"python sweep.py --out {out} --status\n")
