@@ -3,6 +3,7 @@
 Usage:  python plot.py runs/ --out curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out success.png --force
+        python plot.py 'runs/cartpole*' --csv train --metric dormant_ratio --out dormant.png   (any column)
         python plot.py 'runs/cartpole-balance_sparse*' --reference drqv2/curves/dmc_cartpole_balance_sparse.csv
         python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out mt10.png
         python plot.py maps RUN_A [RUN_B ...] --out maps.png [--frames N]   (activation maps, below)
@@ -50,9 +51,6 @@ import sys
 from functools import reduce
 
 import numpy as np
-
-METRICS = ("return", "success")
-
 
 class PlotError(Exception):
     """Bad input: reported as one line on stderr, exit code 2."""
@@ -183,6 +181,14 @@ def env_of(run: dict) -> str:
     return str(run["config"].get("env", "?"))
 
 
+def config_label(config: dict, key: str) -> str:
+    """A config value as a line's label names it; the method with its variant: drq+drm (--drm)."""
+    if key == "method":
+        import cli  # stdlib only; imported here as the other project modules are
+        return cli.method_label(config)
+    return str(config[key])
+
+
 def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
     """{label: runs} where label joins the runs' config values of `keys`, e.g. "sear / walker-walk"."""
     groups = {}
@@ -190,7 +196,7 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
         missing = [k for k in keys if k not in run["config"]]
         if missing:
             raise PlotError(f"{run['dir']}/config.json: no key {missing[0]!r} to group by")
-        groups.setdefault(" / ".join(str(run["config"][k]) for k in keys), []).append(run)
+        groups.setdefault(" / ".join(config_label(run["config"], k) for k in keys), []).append(run)
     return dict(sorted(groups.items()))
 
 
@@ -205,7 +211,8 @@ def split_by_config(label: str, group: list[dict], keys: list[str]) -> dict[str,
     (apart from NOT_A_SETTING and the grouping keys), the label naming them, e.g.
     "sear mask_source=learned:seg.pt". A group whose runs agree keeps its label."""
     configs = [r["config"] for r in group]
-    names = sorted({k for c in configs for k in c} - NOT_A_SETTING - set(keys) - {"env"})
+    named = set(keys) | ({"drm"} if "method" in keys else set())  # config_label() names drm with the method
+    names = sorted({k for c in configs for k in c} - NOT_A_SETTING - named - {"env"})
     # A key some configs lack came with a later version of sear.py: only the runs that record it can differ in it.
     differ = [k for k in names if len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1]
     if not differ:
@@ -688,7 +695,8 @@ def main(argv=None) -> int:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
     parser.add_argument("--out", default="curves.png", help="PNG to write (default curves.png)")
-    parser.add_argument("--metric", default="return", help="return | success")
+    parser.add_argument("--metric", default="return", help="return | success | any column of the CSV read "
+                                                           "(e.g. --csv train --metric dormant_ratio)")
     parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
     parser.add_argument("--group", default="method", help="config keys, comma separated: method,env")
     parser.add_argument("--title", default=None)
@@ -710,8 +718,6 @@ def main(argv=None) -> int:
                 baseline = (float(value), label or "baseline")
             except ValueError:
                 raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
-        if args.metric not in METRICS:
-            raise PlotError(f"unknown metric {args.metric!r} (choose from {', '.join(METRICS)})")
         if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
             raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
         keys = [k.strip() for k in args.group.split(",") if k.strip()]
@@ -754,7 +760,7 @@ def main(argv=None) -> int:
                 interpolate = args.csv == "train"
                 panels[panel][label] = (*aggregate(curves, interpolate), coverage(curves, interpolate),
                                         envs_of_group)
-        ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"
+        ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else args.metric}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
         drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references)
         plot(panels, args.out, ylabel, title, baseline, drawn)

@@ -173,6 +173,21 @@ def test_drqv2_loader_runs_are_a_method_of_their_own(tmp_path, published, capsys
     assert "verdict: pending (1 of 3" in out  # the rule is about our DrQ as sear.py trains it
 
 
+def test_drm_runs_are_a_method_of_their_own(tmp_path, published, capsys):
+    """sear.py --method drq --drm beside our DrQ of the same seed: "drq+drm", left out of the verdict."""
+    import json
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 2, frames=FRAMES, base=900.0)
+    d = make_run(tmp_path / "drm-2", "cartpole-balance_sparse", "drq", 2, frames=(0, 10000), base=100.0)
+    (d / "config.json").write_text(json.dumps({**json.loads((d / "config.json").read_text()), "drm": True}))
+    code, out, err = run_main(capsys, runs, tmp_path / "drm-2", "--published", published, "--out", tmp_path / "f.png")
+    assert code == 0, err
+    head = next(line for line in out.splitlines() if line.startswith("| frames |")).split(" | ")
+    assert head[-3:-1] == ["drq+drm mean", "drq+drm seed 2"]
+    assert table_row(out, "10k")[-3:-1] == ["130.0", "130.0"]
+    assert "verdict: pending (1 of 3" in out
+
+
 def test_the_same_rule_is_applied_to_the_official_code(tmp_path, published, capsys):
     runs = tmp_path / "runs"
     make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES, base=840.0)  # 890 at 40k: below 900
