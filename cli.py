@@ -217,7 +217,27 @@ TASK_DEFAULTS = (
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
     ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
      "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
+    ("drm_max_perturb", lambda cfg: cfg.drm and cfg.env in DRM_MAX_PERTURB, lambda cfg: DRM_MAX_PERTURB[cfg.env],
+     "DrM's cfgs/task/<task>.yaml: agent.max_perturb_factor"),
 )
+# --drm's shrink factor where DrM's task cfgs (github.com/XuGW-Kevin/DrM, cfgs/task) set it below the
+# 1.0 of their medium tasks (acrobot_swingup, cheetah_run, hopper_hop, quadruped, reacher, walker_run, ...).
+DRM_MAX_PERTURB = {"acrobot-swingup_sparse": 0.9, "manipulator-bring_ball": 0.9, "humanoid-stand": 0.9,
+                   "humanoid-walk": 0.9, "dog-trot": 0.9, "humanoid-run": 0.6, "dog-run": 0.6, "dog-stand": 0.6,
+                   "dog-walk": 0.6}
+DRM_SUFFIX = "+drm"  # sweep.py's and the tables' name of a method run with --drm: drq+drm is DrM
+
+
+def method_label(config) -> str:
+    """A run's method as run directories, sweep.py and plot tables name it: 'drq', or 'drq+drm' with
+    --drm. `config` is a Config or a saved config dict (one without 'drm' predates the flag)."""
+    get = config.get if isinstance(config, dict) else lambda k: getattr(config, k, None)
+    return f"{get('method')}{DRM_SUFFIX if get('drm') else ''}"
+
+
+def split_method_label(label: str) -> tuple[str, tuple[str, ...]]:
+    """('drq', ('--drm',)) for 'drq+drm'; (label, ()) for a plain method."""
+    return (label[:-len(DRM_SUFFIX)], ("--drm",)) if label.endswith(DRM_SUFFIX) else (label, ())
 
 
 def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
@@ -244,13 +264,24 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def field_groups(Config) -> list:
+    """[(title, defaults, fields)] of the flags: Config's own fields, those of each dataclass it inherits
+    (drm.DrMConfig), then RunConfig's."""
+    groups = []
+    for cls in (c for c in Config.__mro__ if dataclasses.is_dataclass(c)):
+        own = cls.__dict__.get("__annotations__", {})
+        title = f"the experiment ({'sear' if cls is Config else cls.__module__}.py {cls.__name__})"
+        groups.append((title, cls(), [f for f in dataclasses.fields(cls) if f.name in own]))
+    return groups + [("the run (cli.py RunConfig)", RunConfig(), list(dataclasses.fields(RunConfig)))]
+
+
 def build_parser(Config, methods: dict) -> OneLineParser:
     """One flag per field of Config and RunConfig, its help the field's doc; enums take `choices`."""
     parser = OneLineParser(prog="sear.py", description="SEAR: Structured Environment-Agent Representations "
                                                        "for visual RL (ICML 2023).")
-    for cls, title in ((Config, "the experiment (sear.py Config)"), (RunConfig, "the run (cli.py RunConfig)")):
-        group, defaults = parser.add_argument_group(title), cls()
-        for f in dataclasses.fields(cls):
+    for title, defaults, fields in field_groups(Config):
+        group = parser.add_argument_group(title)
+        for f in fields:
             help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})"
             choices = f.metadata.get("choices")
             if f.name == "method":  # the METHODS table documents itself
@@ -292,12 +323,15 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
                               "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
-                              "eval_every", "mae_patch", "curl_dim")),
+                              "eval_every", "mae_patch", "curl_dim", "drm_perturb_every")),
     (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
                                 "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip",
-                                "eval_episodes_per_task", "snapshot_minutes", "threads")),
+                                "eval_episodes_per_task", "snapshot_minutes", "threads", "drm_dormant_temp",
+                                "drm_lambda_temp", "drm_perturb_rate")),
     ("in [0, 1]", lambda v: 0.0 <= v <= 1.0, ("discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio",
-                                              "camera_distraction", "color_distraction")),
+                                              "camera_distraction", "color_distraction", "drm_dormant_threshold",
+                                              "drm_target_ratio", "drm_lambda", "drm_min_perturb", "drm_max_perturb",
+                                              "drm_expectile")),
 )
 
 
@@ -308,6 +342,12 @@ def validate(cfg, run: RunConfig, methods: dict) -> None:
             value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
             if not holds(value):
                 raise ConfigError(f"{flag(name)} must be {rule}, got {value}")
+    if cfg.drm and cfg.drm_perturb_every % cfg.update_every:
+        raise ConfigError(f"--drm-perturb-every ({cfg.drm_perturb_every}) must be a multiple of --update-every "
+                          f"({cfg.update_every}): DrM perturbs at the start of an update")
+    if cfg.drm_min_perturb > cfg.drm_max_perturb:
+        raise ConfigError(f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
+                          f"({cfg.drm_max_perturb})")
     if cfg.latent_dim % 2:
         raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
     if 84 % cfg.mae_patch:

@@ -762,7 +762,7 @@ class RunDir:
             cli.warn(message)
         if self.path is None:
             self.safe_point()  # stopped while the envs were made: nothing to keep
-            self.path = new_run_dir(self.run.run_root, f"{self.cfg.env}__{self.cfg.method}__{self.cfg.seed}")
+            self.path = new_run_dir(self.run.run_root, f"{self.cfg.env}__{cli.method_label(self.cfg)}__{self.cfg.seed}")
             self.lock = RunLock(self.path)
             self.write_config(cli.config_dict(self.cfg, self.run))
 
@@ -789,8 +789,8 @@ class RunDir:
         sample_rng."""
         cfg = self.cfg
         self.agent, self.buffer, self.sample_rng = agent, buffer, sample_rng
-        print(f"run dir: {self.path}\nmethod {cfg.method} on {cfg.env} | device {agent.device} | action repeat "
-              f"{cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
+        print(f"run dir: {self.path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device {agent.device} | "
+              f"action repeat {cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
               f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
         if cfg.mask_source != "sim":
             print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the simulator's mask "

@@ -3,6 +3,7 @@
 Usage:  python plot.py runs/ --out runs/curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out runs/success.png --force
+        python plot.py 'runs/cartpole*' --csv train --metric dormant_ratio --out runs/dormant.png   (any column)
         python plot.py 'runs/cartpole-balance_sparse*' --reference drqv2/curves/dmc_cartpole_balance_sparse.csv
         python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out runs/mt10.png
         python plot.py maps RUN_A [RUN_B ...] --out runs/maps.png [--frames N]   (activation maps, below)
@@ -54,9 +55,6 @@ import textwrap
 from functools import reduce
 
 import numpy as np
-
-METRICS = ("return", "success")
-
 
 class PlotError(Exception):
     """Bad input: reported as one line on stderr, exit code 2."""
@@ -187,6 +185,14 @@ def env_of(run: dict) -> str:
     return str(run["config"].get("env", "?"))
 
 
+def config_label(config: dict, key: str) -> str:
+    """A config value as a line's label names it; the method with its variant: drq+drm (--drm)."""
+    if key == "method":
+        import cli  # stdlib only; imported here as the other project modules are
+        return cli.method_label(config)
+    return str(config[key])
+
+
 def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
     """{label: runs} where label joins the runs' config values of `keys`, e.g. "sear / walker-walk"."""
     groups = {}
@@ -194,7 +200,7 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
         missing = [k for k in keys if k not in run["config"]]
         if missing:
             raise PlotError(f"{run['dir']}/config.json: no key {missing[0]!r} to group by")
-        groups.setdefault(" / ".join(str(run["config"][k]) for k in keys), []).append(run)
+        groups.setdefault(" / ".join(config_label(run["config"], k) for k in keys), []).append(run)
     return dict(sorted(groups.items()))
 
 
@@ -216,7 +222,8 @@ def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
     by_env = {}
     for r in runs:
         by_env.setdefault(env_of(r), []).append(r["config"])
-    names = sorted({k for r in runs for k in r["config"]} - NOT_A_SETTING - set(keys) - {"env"})
+    named = set(keys) | ({"drm"} if "method" in keys else set())  # config_label() names drm with the method
+    names = sorted({k for r in runs for k in r["config"]} - NOT_A_SETTING - named - {"env"})
     return [k for k in names if any(len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1
                                     for configs in by_env.values())]
 
@@ -787,7 +794,8 @@ def main(argv=None) -> int:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
     parser.add_argument("--out", default="runs/curves.png", help="PNG to write (default runs/curves.png)")
-    parser.add_argument("--metric", default="return", help="return | success")
+    parser.add_argument("--metric", default="return", help="return | success | any column of the CSV read "
+                                                           "(e.g. --csv train --metric dormant_ratio)")
     parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
     parser.add_argument("--group", default="method", help="config keys, comma separated: method,env")
     parser.add_argument("--title", default=None)
@@ -809,8 +817,6 @@ def main(argv=None) -> int:
                 baseline = (float(value), label or "baseline")
             except ValueError:
                 raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
-        if args.metric not in METRICS:
-            raise PlotError(f"unknown metric {args.metric!r} (choose from {', '.join(METRICS)})")
         if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
             raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
         keys = [k.strip() for k in args.group.split(",") if k.strip()]
@@ -854,7 +860,7 @@ def main(argv=None) -> int:
                 interpolate = args.csv == "train"
                 panels[panel][label] = (*aggregate(curves, interpolate), coverage(curves, interpolate),
                                         envs_of_group)
-        ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else 'return'}"
+        ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else args.metric}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
         drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references)
         plot(panels, args.out, ylabel, title, baseline, drawn)

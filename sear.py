@@ -5,7 +5,8 @@ decaying exploration noise) whose image encoder is also trained by two decoders 
 two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
 the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
 c2 = 0.0025). The paper's baselines are the same agent with another auxiliary loss (one seam,
-`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit.
+`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit; --drm adds
+DrM to any of them (drm.py).
 
 In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
 6. Replay buffer, 7. Evaluation, 8. Training loop. Around it: experiment.py (envs, the run directory,
@@ -29,6 +30,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 import cli
+import drm
 import experiment
 from cli import arg
 
@@ -37,9 +39,9 @@ from cli import arg
 # 1. Config
 # ================================================================================================
 @dataclass
-class Config:
-    """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help).
-    How a process runs it (device, files, snapshots) is cli.RunConfig."""
+class Config(drm.DrMConfig):
+    """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help); DrM's
+    (--drm) come from drm.DrMConfig. How a process runs it (device, files, snapshots) is cli.RunConfig."""
     env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
     method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit")
     seed: int = arg(1, "seeds python, numpy, torch and the environments")
@@ -522,7 +524,9 @@ class Agent:
                 net.to(memory_format=torch.channels_last)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
         self.metric_names = (("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread")
-                             + (self.aux.metric_names if self.aux else ()))
+                             + (self.aux.metric_names if self.aux else ()) + (drm.METRICS if cfg.drm else ()))
+        self.drm = drm.DrM(cfg, self, linear_std, weight_init, trunk, mlp) if cfg.drm else None  # drm.py
+        self.std = self.drm.std if self.drm else lambda step: linear_std(cfg, step)  # the exploration std
 
     def conv_precision(self):
         """bf16 autocast for the convolutional networks under --precision bf16; a no-op for fp32."""
@@ -548,7 +552,7 @@ class Agent:
         obs = torch.as_tensor(pixels, device=self.device).float().unsqueeze(0)
         m = None if mask is None else torch.as_tensor(mask, device=self.device).float().unsqueeze(0)
         latent = self.encode(self.encoder_input(obs, m))
-        dist = self.actor(latent, linear_std(self.cfg, step))
+        dist = self.actor(latent, self.std(step))
         if eval_mode:
             action = dist.mean
         else:
@@ -563,11 +567,13 @@ class Agent:
         latent of the augmented observation, and the terms for the logs."""
         obs_aug, mask_aug = shift_together(batch.obs, batch.mask)
         latent = self.encode(obs_aug)
+        drm_metrics = self.drm.observe(latent.detach(), batch.action, step) if self.drm else {}  # DrM's ratio, V
         with torch.no_grad():
             next_latent = self.encode(random_shift(batch.next_obs))
-            dist = self.actor(next_latent, linear_std(self.cfg, step))
+            dist = self.actor(next_latent, self.std(step))
             next_action = dist.sample(clip=self.cfg.std_clip)
             target_q = torch.min(*self.critic_target(next_latent, next_action))
+            target_q = self.drm.blend(next_latent, target_q) if self.drm else target_q  # DrM: + lambda V(s')
             target_q = batch.reward + batch.discount * target_q
         q1, q2 = self.critic(latent, batch.action)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
@@ -576,7 +582,7 @@ class Agent:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
                 aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
             loss = loss + aux_loss
-        metrics.update(critic_loss=critic_loss.item(), q=q1.mean().item())
+        metrics.update(drm_metrics, critic_loss=critic_loss.item(), q=q1.mean().item())
         return loss, latent, metrics
 
     def update_critic(self, batch: Batch, step):
@@ -592,7 +598,7 @@ class Agent:
     def update_actor(self, latent, step):
         """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
         loss does not train the encoder."""
-        dist = self.actor(latent, linear_std(self.cfg, step))
+        dist = self.actor(latent, self.std(step))
         action = dist.sample(clip=self.cfg.std_clip)
         # Nor the critic: the gradient DrQ-v2 computes for it here is discarded by the next critic
         # step; frozen, the backward pass skips those GEMMs.
@@ -605,6 +611,8 @@ class Agent:
         return actor_metrics(actor_loss, dist.mean.detach())
 
     def update(self, batch: Batch, step):
+        if self.drm is not None:  # DrM's shrink-and-perturb, when the step is due
+            self.drm.perturb_if_due(step)
         batch = Batch._make(torch.as_tensor(x, device=self.device).float() for x in batch)
         batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
                                next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
@@ -618,7 +626,7 @@ class Agent:
     def state_dict(self):
         return {"encoder": self.encoder.state_dict(), "actor": self.actor.state_dict(),
                 "critic": self.critic.state_dict(), "critic_target": self.critic_target.state_dict(),
-                "aux": self.aux.state_dict() if self.aux is not None else None,
+                "aux": self.aux.state_dict() if self.aux else None, "drm": self.drm.state_dict() if self.drm else None,
                 "model_opt": self.model_opt.state_dict(), "actor_opt": self.actor_opt.state_dict()}
 
     def load_state_dict(self, state):
@@ -626,6 +634,8 @@ class Agent:
             getattr(self, name).load_state_dict(state[name])
         if self.aux is not None:
             self.aux.load_state_dict(state["aux"])
+        if self.drm is not None:
+            self.drm.load_state_dict(state["drm"])
 
 
 # ================================================================================================

@@ -7,6 +7,8 @@ their last snapshot, and no key ever runs twice at once.
 Usage:
   python sweep.py --grid kitchen                        # a named grid of the paper (see --help)
   python sweep.py --envs walker-walk cup-catch --methods sear drq --seeds 1-5 -- --frames 100000
+  python sweep.py --envs cartpole-balance_sparse --methods drq drq+drm sear sear+drm   # METHOD+drm: with --drm
+  python sweep.py --grid kitchen --methods sear sear+drm    # a grid's variant, and the same with --drm (DrM)
   python sweep.py --grid kitchen --status               # queued / running / done / failed (the flags the
                                                         # sweep ran with need not be repeated: sweep.json has them)
   python sweep.py --grid kitchen --report               # per task mean +- 95% CI; over tasks IQM (rliable)
@@ -85,6 +87,19 @@ def plain(*methods):
     return tuple(Variant(m, m) for m in methods)
 
 
+def pick_variants(wanted: tuple[str, ...] | None, have: tuple[Variant, ...]) -> list[Variant]:
+    """A grid's variants named in `wanted` (all if None), in the grid's order; NAME+drm is variant NAME
+    run with --drm (drm.py: DrQ becomes DrM, SEAR becomes SEAR + DrM)."""
+    import cli  # stdlib only, as sear_config's imports: late
+    picked = []
+    for v in have:
+        if wanted is None or v.label in wanted:
+            picked.append(v)
+        if wanted is not None and v.label + cli.DRM_SUFFIX in wanted:
+            picked.append(Variant(v.label + cli.DRM_SUFFIX, v.method, (*v.flags, "--drm")))
+    return picked
+
+
 BASELINES = plain("sear", "drq", "ae", "mae", "curl")
 # The authors' task cfgs (sear/cfgs/task/{metaworld,kitchen,adroit,distracting}.yaml) all train for
 # num_train_frames 2.5M with the exploration std decaying over 500k agent steps (sear.py's default).
@@ -152,7 +167,7 @@ class JobSpec:
         return f"{self.env}__{self.variant}__{self.seed}__{self.key}"
 
 
-SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]*")
 # sear.py flags that sweep.py sets itself, and what to use instead.
 RESERVED = {"--env": "--envs", "--method": "--methods", "--seed": "--seeds", "--run-root": "--out",
             "--resume": "re-running the sweep, which resumes interrupted runs",
@@ -251,12 +266,13 @@ def sweep_name(args) -> str:
     """The sweep's folder under --out: --name, else the grid's name, else custom."""
     sweep = args.name or args.grid or "custom"
     if not SAFE_NAME.fullmatch(sweep) or sweep.endswith(".aside"):
-        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_' or '-' (and not end in .aside)")
+        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_', '+' or '-' (and not end in .aside)")
     return sweep
 
 
 def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]:
     """(sweep name, jobs, grid) from the command line. Checks everything; creates nothing."""
+    import cli
     grid = None
     if args.grid:
         if args.grid in NOT_YET:
@@ -273,13 +289,14 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
     seeds = parse_seeds(args.seeds) if args.seeds else (grid.seeds if grid else (1,))
     if grid:  # --envs and --methods pick from the grid's lists
         for given, have, what in ((envs, grid.envs, "env"), (wanted, [v.label for v in grid.variants], "method")):
-            extra = [x for x in (given or ()) if x not in have]
+            extra = [x for x in (given or ()) if x not in have and cli.split_method_label(x)[0] not in have]
             if extra:
-                raise SweepError(f"grid '{args.grid}' has no {what} {extra[0]}; it has {', '.join(have)}")
+                raise SweepError(f"grid '{args.grid}' has no {what} {extra[0]}; it has {', '.join(have)}"
+                                 + (" (each also as NAME+drm)" if what == "method" else ""))
         envs = envs or grid.envs
-        variants = [v for v in grid.variants if wanted is None or v.label in wanted]
+        variants = pick_variants(wanted, grid.variants)
     else:
-        variants = [Variant(m, m) for m in wanted]
+        variants = [Variant(m, *cli.split_method_label(m)) for m in wanted]
     for v in variants:
         if not SAFE_NAME.fullmatch(v.label):
             raise SweepError(f"method '{v.label}' cannot name a directory")
@@ -950,7 +967,8 @@ def build_parser() -> argparse.ArgumentParser:
     what = p.add_argument_group("what to run")
     what.add_argument("--grid", help=f"a named grid of the paper: {grids}; transfer: not available yet")
     what.add_argument("--envs", nargs="+", help="tasks (with --grid: a subset of the grid's)")
-    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its variants)")
+    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its variants); "
+                                                    "METHOD+drm runs METHOD with --drm (drq+drm is DrM)")
     what.add_argument("--seeds", nargs="+", help="seeds: 1-5, 1,3,7 or 1-3 9 (default: the grid's, else 1)")
     what.add_argument("--name", help="sweep folder under --out (default: the grid's name, else custom)")
     what.add_argument("--out", default="sweeps", help="folder of sweeps (default: sweeps)")

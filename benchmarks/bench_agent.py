@@ -5,6 +5,7 @@ DrQ-v2 update timed against this project's drq update in the same process.
 
     python benchmarks/bench_agent.py                                  # batch 256, drq and sear, fp32 and bf16
     python benchmarks/bench_agent.py --methods drq sear ae mae curl --updates 5
+    python benchmarks/bench_agent.py --methods drq drq+drm sear sear+drm --split-steps 0   # what --drm costs
     python benchmarks/bench_agent.py --official /path/to/facebookresearch/drqv2 --rounds 7
     python benchmarks/bench_agent.py --compare-allocators             # glibc default vs sear.py's tunables
     python benchmarks/bench_agent.py --breakdown --split-steps 0      # + time and GFLOP/s per op class
@@ -64,7 +65,9 @@ def fake_batch(batch_size, action_dim=6, seed=0):
 
 
 def make_agent(method, precision, batch_size, device="cpu", action_dim=6):
-    cfg = sear.Config(method=method, batch_size=batch_size, action_repeat=2, precision=precision)
+    """method: a sear.py method, or METHOD+drm for it with --drm."""
+    method, drm_flag = cli.split_method_label(method)
+    cfg = sear.Config(method=method, batch_size=batch_size, action_repeat=2, precision=precision, drm=bool(drm_flag))
     return sear.Agent(cfg, action_dim, torch.device(device))
 
 
@@ -307,7 +310,8 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--updates", type=int, default=3, help="timed updates per measurement")
-    p.add_argument("--methods", nargs="+", default=["drq", "sear"], choices=list(sear.METHODS))
+    p.add_argument("--methods", nargs="+", default=["drq", "sear"],
+                   choices=[m + drm for drm in ("", cli.DRM_SUFFIX) for m in sear.METHODS])
     p.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: sear.py's default)")

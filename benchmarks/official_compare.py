@@ -135,11 +135,11 @@ def our_episodes(run_dir):
 
 
 def run_label(run_dir):
-    """'drq seed 1' from a run's config.json (the folder's name if it has none)."""
+    """'drq seed 1' ('drq+drm seed 1' with --drm) from a run's config.json (the folder's name if it has none)."""
     try:
         with open(os.path.join(run_dir, "config.json")) as f:
             c = json.load(f)
-        return f"{c['method']} seed {c['seed']}"
+        return f"{cli.method_label(c)} seed {c['seed']}"
     except (OSError, ValueError, KeyError):
         return os.path.basename(os.path.normpath(run_dir))
 

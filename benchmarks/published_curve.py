@@ -16,9 +16,10 @@ published seeds' mean and min-max; the p-values of the rung's rule (docs/verdict
 its verdict; each run's wall time. --power prints how often the rule finds a given collapse rate. Writes the
 figure: each seed thin, each method's mean thick, the published mean with its min-max band.
 Runs of benchmarks/drqv2_loader.py (a drqv2_loader.json in the run dir) are one more method,
-"drq (drqv2 loader)". --official adds runs of the official code (facebookresearch/drqv2's train.py, run on this machine:
-hydra run dirs with .hydra/config.yaml and eval.csv) as one more method, the check of the machine
-itself; the rule also runs on our DrQ and the official code's seeds together.
+"drq (drqv2 loader)", and so are runs with --drm ("drq+drm": DrM). --official adds runs of the official code
+(facebookresearch/drqv2's train.py, run on this machine: hydra run dirs with .hydra/config.yaml and eval.csv)
+as one more method, the check of the machine itself; the rule also runs on our DrQ and the official code's
+seeds together.
 --results is a results file (method, seed, task, frame, return, wall_time, source; one row per
 evaluation) read as runs beside the run dirs: the evaluations of runs whose directories are gone. A run
 dir and a results file's run of the same method and seed are one run: their returns must agree where
@@ -111,7 +112,7 @@ def load_ours(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
                        "walls": []}
         if plot.task_key(plot.env_of(run)) != task:
             continue
-        method, seed = str(run["config"].get("method")), int(run["config"].get("seed", 0))
+        method, seed = cli.method_label(run["config"]), int(run["config"].get("seed", 0))
         if os.path.isfile(os.path.join(d, LOADER_MARKER)):  # trained by benchmarks/drqv2_loader.py
             method += LOADER
         if seed in ours.get(method, {}):
@@ -529,8 +530,8 @@ def main(argv=None) -> int:
         ours = merge_runs(recorded, ours)
         if not ours:
             raise CurveError(f"no runs on {task} in {' '.join(args.runs + args.official + [args.results or ''])}".strip())
-        for m in sorted(ours):  # the official code's runs (given now or recorded): one more method, last
-            if m not in methods and (m == OFFICIAL or m.endswith(LOADER)):
+        for m in sorted(ours):  # the official code's, the loader's and --drm runs: one more method each
+            if m not in methods and (m == OFFICIAL or m.endswith((LOADER, cli.DRM_SUFFIX))):
                 methods.append(m)
                 seeds[m] = sorted(ours[m])
         if OFFICIAL in methods:

@@ -266,12 +266,9 @@ def test_smoke_run_on_every_suite(env_name, tmp_path):
     assert ("not the paper's DAVIS-2017 videos" in r.stderr) == env_name.endswith("distracting"), r.stderr
 
 
-def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
-    """Snapshots sit between episodes and every episode's reset seed follows from its number, so
-    48 frames + resume to 80 must equal 80 frames in one go: same evaluations, losses, weights."""
-    import torch
-
-    common = ["--env", "walker-walk", "--seed", "5", "--save-buffer", *TINY]
+def straight_and_resumed(common, tmp_path):
+    """(run dir, run dir, the resume's result): sear.py `common` for 80 frames in one go, and for 48
+    frames then --resume to 80."""
     straight, split = tmp_path / "straight", tmp_path / "split"
     for d in (straight, split):
         d.mkdir()
@@ -280,7 +277,16 @@ def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
     split_dir = only_run_dir(split)
     r = run(["--resume", str(split_dir), "--frames", "80"], split)
     assert r.returncode == 0, r.stderr[-2000:]
-    straight_dir = only_run_dir(straight)
+    return only_run_dir(straight), split_dir, r
+
+
+def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
+    """Snapshots sit between episodes and every episode's reset seed follows from its number, so
+    48 frames + resume to 80 must equal 80 frames in one go: same evaluations, losses, weights."""
+    import torch
+
+    straight_dir, split_dir, _ = straight_and_resumed(["--env", "walker-walk", "--seed", "5", "--save-buffer", *TINY],
+                                                      tmp_path)
 
     def table(run_dir, name, cols):
         return [[r[c] for c in cols] for r in rows(run_dir / name)]

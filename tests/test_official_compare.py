@@ -117,6 +117,17 @@ def test_saturation_table_puts_the_official_probe_beside_our_train_csv(tmp_path)
     assert "| 2k–3k | 0.25 / 0.375 |  |" in r.stdout and "| 4k–5k |  | 0.50 / 0.1 |" in r.stdout
 
 
+def test_a_drm_run_is_named_method_plus_drm_beside_the_same_seed_without(tmp_path):
+    (tmp_path / "drm").mkdir()
+    drq = actor_run(tmp_path, 2, [[5000, 2500, 0.98, 0.15]])
+    drm = actor_run(tmp_path / "drm", 2, [[5000, 2500, 0.1, 0.6]])
+    (drm / "config.json").write_text('{"method": "drq", "seed": 2, "drm": true}')  # sear.py --method drq --drm
+    r = run(SCRIPT, "saturation", drq, drm, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "| frames | drq seed 2 | drq+drm seed 2 |" in r.stdout
+    assert "| 4k–6k | 0.98 / 0.15 | 0.10 / 0.6 |" in r.stdout
+
+
 def test_saturation_of_a_resumed_run_counts_a_repeated_frame_once(tmp_path):
     """A resume repeats the episodes after its snapshot in train.csv: the rows written last count."""
     ours = actor_run(tmp_path, 5, [[5000, 2500, 0.5, 0.1], [6000, 3000, 1.0, 0.9], [6000, 3000, 0.0, 0.3]])

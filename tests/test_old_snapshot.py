@@ -40,6 +40,8 @@ def test_a_run_dir_from_ca5eab9_resumes_and_finishes(tmp_path):
     snapshot = torch.load(run_dir / "snapshot.pt", weights_only=False)
     assert snapshot["counters"]["step"] == 24 and snapshot["counters"]["episode"] == 3
     saved = {**json.loads(config), "frames": 48, "resume": str(run_dir)}  # what a resume may change, changed
-    newer = {k: v for k, v in snapshot["config"].items() if k not in saved}
-    assert newer == {"pole_inertia": "exact"}  # settings added since ca5eab9: at their defaults, as the run ran
-    assert {k: v for k, v in snapshot["config"].items() if k in saved} == saved  # the same values as before
+    assert {k: snapshot["config"][k] for k in saved} == saved  # the same keys and values as before
+    import dataclasses
+    import sear
+    gained = {k: v for k, v in snapshot["config"].items() if k not in saved}  # flags added since (--drm's)
+    assert gained == {k: v for k, v in dataclasses.asdict(sear.Config()).items() if k in gained}  # at defaults

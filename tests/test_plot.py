@@ -116,6 +116,38 @@ def test_group_by_method_and_env(runs):
         plot.group_runs(loaded, ["nosuchkey"])
 
 
+def test_a_drm_run_is_its_own_line_named_method_plus_drm(runs):
+    d = make_run(runs, "walker-walk", "drq", 4)
+    config = json.loads((d / "config.json").read_text())
+    (d / "config.json").write_text(json.dumps({**config, "drm": True}))  # sear.py --method drq --drm
+    for r in plot.find_runs([str(runs)])[:3]:  # runs of a sear.py that has the flag record drm false
+        path = os.path.join(r, "config.json")
+        with open(path) as f:
+            c = json.load(f)
+        with open(path, "w") as f:
+            json.dump({**c, "drm": False}, f)
+    loaded = [plot.load_run(d) for d in plot.find_runs([str(runs)])]
+    lines = {label: len(g) for name, group in plot.group_runs(loaded, ["method"]).items()
+             for label, g in plot.split_by_config(name, group, ["method"]).items()}
+    assert lines == {"drq": 3, "drq+drm": 1, "sear": 3}
+
+
+def test_any_train_csv_column_can_be_drawn(runs, tmp_path, capsys):
+    """--csv train --metric NAME: e.g. --drm's dormant_ratio, interpolated over the episodes' frames."""
+    for d in plot.find_runs([str(runs / "*__drq__*")]):
+        with open(os.path.join(d, "train.csv"), "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["frame", "return", "dormant_ratio", "perturb_factor"])
+            w.writerows([[1000, 1.0, 0.5, ""], [2000, 2.0, 0.3, 0.4], [3000, 3.0, 0.1, ""]])
+    code, out, err = run_main(capsys, runs / "*__drq__*", "--csv", "train", "--metric", "dormant_ratio",
+                              "--out", tmp_path / "d.png")
+    assert code == 0, err
+    assert "| walker-walk | drq | 3 | 3000 | 0.1 ± " in out and (tmp_path / "d.png").read_bytes().startswith(PNG_MAGIC)
+    code, out, err = run_main(capsys, runs / "*__drq__*", "--csv", "train", "--metric", "perturb_factor",
+                              "--out", tmp_path / "p.png")  # an event column: only the episodes that have one
+    assert code == 0 and "| walker-walk | drq | 3 | 2000 | 0.4 ± " in out, err
+
+
 # ---------------------------------------------------------------- CLI
 def test_cli_subprocess_writes_png_and_table(runs, tmp_path):
     out = tmp_path / "curves.png"

@@ -169,6 +169,21 @@ def test_drqv2_loader_runs_are_a_method_of_their_own(tmp_path, published, capsys
     assert "the same rule on drq (drqv2 loader): pending" in out
 
 
+def test_drm_runs_are_a_method_of_their_own(tmp_path, published, capsys):
+    """sear.py --method drq --drm beside our DrQ of the same seed: "drq+drm", left out of the verdict."""
+    import json
+    runs = tmp_path / "runs"
+    make_run(runs, "cartpole-balance_sparse", "drq", 2, frames=FRAMES, base=900.0)
+    d = make_run(tmp_path / "drm-2", "cartpole-balance_sparse", "drq", 2, frames=(0, 10000), base=100.0)
+    (d / "config.json").write_text(json.dumps({**json.loads((d / "config.json").read_text()), "drm": True}))
+    code, out, err = run_main(capsys, runs, tmp_path / "drm-2", "--published", published, "--out", tmp_path / "f.png")
+    assert code == 0, err
+    head = next(line for line in out.splitlines() if line.startswith("| frames |")).split(" | ")
+    assert head[-3:-1] == ["drq+drm mean", "drq+drm seed 2"]
+    assert table_row(out, "10k")[-3:-1] == ["130.0", "130.0"]
+    assert "verdict: UNDECIDED (1 seed at 40k" in out
+
+
 def test_official_dir_that_is_no_official_run_is_one_line(tmp_path, published, capsys):
     runs = tmp_path / "runs"
     make_run(runs, "cartpole-balance_sparse", "drq", 1, frames=FRAMES)

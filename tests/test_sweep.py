@@ -72,6 +72,21 @@ def test_named_grids_hold_the_papers_tasks_methods_seeds_and_budgets():
         ("kitchen-kettle", 2, 1000), ("kitchen-light", 2, 1000), ("kitchen-slider", 2, 1000)]
 
 
+def test_method_plus_drm_is_the_method_with_drm_in_a_grid_or_not():
+    _, specs, _ = plan(["--envs", "cartpole-balance_sparse", "--methods", "drq", "drq+drm", "sear+drm"])
+    assert [(s.variant, s.args[3], "--drm" in s.args) for s in specs] == [
+        ("drq", "drq", False), ("drq+drm", "drq", True), ("sear+drm", "sear", True)]
+    assert specs[0].key != specs[1].key and len({s.name for s in specs}) == 3
+    assert "__drq+drm__1__" in specs[1].name
+    _, specs, _ = plan(["--grid", "ablations", "--envs", "metaworld-hammer", "--seeds", "1",
+                        "--methods", "sear-mask-noise+drm", "drq"])
+    assert [(s.variant, s.args[-3:]) for s in specs] == [  # the grid's order, the variant's flags kept
+        ("drq", ("--seed", "1", "--frames", "2500000")[-3:]),
+        ("sear-mask-noise+drm", ("--mask-noise", "0.25", "--drm"))]
+    with pytest.raises(sweep.SweepError, match="has no method curl-x.*each also as NAME[+]drm"):
+        plan(["--grid", "kitchen", "--methods", "curl-x+drm"])
+
+
 def test_job_key_depends_on_the_experiment_not_on_how_it_was_spelled():
     def key(*flags):
         return plan(["--envs", "walker-walk", "--methods", "sear"], flags)[1][0].key
