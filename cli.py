@@ -292,9 +292,9 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
                               "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
-                              "eval_every", "mae_patch", "curl_dim")),
+                              "eval_every", "mae_patch")),
     (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
-                                "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip",
+                                "recon_coef", "mask_coef", "ae_latent_lambda", "curl_lr", "std_end", "std_clip",
                                 "eval_episodes_per_task", "snapshot_minutes", "threads")),
     ("in [0, 1]", lambda v: 0.0 <= v <= 1.0, ("discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio",
                                               "camera_distraction", "color_distraction")),
@@ -480,7 +480,7 @@ def init_fields(cfg, init_parts: str) -> tuple[str, ...]:
     source run's."""
     fields = ("method", "latent_dim", "frame_stack")
     if init_parts != "encoder" and cfg.method == "curl":
-        fields += ("curl_dim",)  # CURL's projection heads are its auxiliary networks
+        fields += ("feature_dim",)  # CURL's W and key read the critic's feature
     if init_parts == "all":
         fields += ("feature_dim", "hidden_dim")
     return fields
