@@ -5,7 +5,7 @@ decaying exploration noise) whose image encoder is also trained by two decoders 
 two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
 the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
 c2 = 0.0025). The paper's baselines are the same agent with another auxiliary loss (one seam,
-`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit.
+`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel), sear-nosplit; beyond it, dear.
 
 In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
 6. Replay buffer, 7. Evaluation, 8. Training loop. Around it: experiment.py (envs, the run directory,
@@ -41,7 +41,7 @@ class Config:
     """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help).
     How a process runs it (device, files, snapshots) is cli.RunConfig."""
     env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
-    method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit")
+    method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit | dear")
     seed: int = arg(1, "seeds python, numpy, torch and the environments")
     frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action repeat)")
     precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
@@ -102,6 +102,7 @@ class Config:
     mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)")
     curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder, every 2nd update (CURL, Laskin et al. 2020)")
     curl_lr: float = arg(1e-3, "curl: Adam learning rate of CURL's own step (curl_sac.py: encoder_lr)")
+    dear_feature: str = arg("pull", "dear: pull (1 - cos, its released code) | push (max(0, cos))", ("pull", "push"))
 
 
 # ================================================================================================
@@ -349,6 +350,27 @@ class SearNoSplitAux(SearAux):
     split = False
 
 
+class DEARAux(SearAux):
+    """DEAR (Pore et al. 2024; docs/dear.md): SEAR's mask half and, in place of Eq. 5, c1 x a cosine term between
+    the halves that trains z_R alone: pull = 1 - cos (its released code), push = max(0, cos)."""
+    metric_names, decodes, target = ("feature_loss", "mask_loss"), ("mask",), 1.0
+
+    @classmethod
+    def build(cls, cfg, encoder, critic):
+        aux = cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
+        aux.recon_decoder, aux.target = None, {"pull": 1.0, "push": -1.0}[cfg.dear_feature]  # no reconstruction
+        return aux
+
+    def forward(self, latent, obs_aug, mask_aug, **extra):
+        z, z_r = self.decoder_inputs(latent)
+        feature = F.cosine_embedding_loss(z.detach(), z_r, torch.full_like(z[:, 0], self.target))  # DEAR's loss
+        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
+        return self.c1 * feature + self.c2 * mask_loss, {"feature_loss": feature.item(), "mask_loss": mask_loss.item()}
+
+    def decode(self, latent):
+        return {"mask": self.mask_decoder(self.decoder_inputs(latent)[1])}
+
+
 class ReconstructionAux(AuxLoss):
     """One reconstruction decoder on the whole latent: what DrQ-AE and DrQ-MAE share. At evaluation
     nothing is hidden: the decoder reconstructs from the whole image's latent."""
@@ -454,6 +476,7 @@ METHODS = {
     "curl": Method("CURL: contrastive, momentum key", aux=CURLAux),
     "rgbm": Method("DrQ-RGBM: mask appended to the input", encoder="drq", mask_input=True, uses_mask=True),
     "sear-nosplit": Method("SEAR without latent split", aux=SearNoSplitAux, uses_mask=True),
+    "dear": Method("DEAR: mask half + cosine term, no reconstruction", aux=DEARAux, uses_mask=True),
 }
 
 

@@ -1,5 +1,5 @@
-"""The baselines and ablations behind the auxiliary-loss seam: drq, ae, mae, curl, rgbm, sear-nosplit
-(CURL's own checks: test_curl.py)."""
+"""The baselines and ablations behind the auxiliary-loss seam: drq, ae, mae, curl, rgbm, sear-nosplit, dear
+(CURL's own checks: test_curl.py; DEAR's: test_dear.py)."""
 import csv
 
 import numpy as np
@@ -40,7 +40,8 @@ def test_every_method_builds_acts_and_updates(method, device):
 
 
 @pytest.mark.parametrize("method, terms", [("sear", ["recon_loss", "mask_loss"]), ("sear-nosplit", ["recon_loss", "mask_loss"]),
-                                           ("ae", ["recon_loss"]), ("mae", ["recon_loss"]), ("curl", ["curl_loss"])])
+                                           ("ae", ["recon_loss"]), ("mae", ["recon_loss"]), ("curl", ["curl_loss"]),
+                                           ("dear", ["mask_loss"])])
 def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
     torch.manual_seed(0)
     agent = sear.Agent(tiny_cfg(method, lr=1e-3), action_dim=2, device=device)
