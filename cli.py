@@ -216,8 +216,7 @@ def _drqv2_std_steps(cfg):
 # multi-task settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a
 # smaller latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
 # RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task. DEAR
-# takes c1 (its cosine term) and c2 from its released dear.yaml: no value of its paper was at hand
-# (docs/dear.md).
+# takes c1 (its cosine term) and c2 from its released dear.yaml (docs/dear.md).
 TASK_DEFAULTS = (
     ("recon_coef", _dear, 1.0, "DEAR's dear/cfgs/agent/dear.yaml: reconstruction_loss_coeff (its cosine term)"),
     ("mask_coef", _dear, 0.25, "DEAR's dear/cfgs/agent/dear.yaml: mask_loss_coeff"),
