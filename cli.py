@@ -175,6 +175,10 @@ def _multitask(cfg):
     return envs.is_task_set(cfg.env)
 
 
+def _dear(cfg):
+    return cfg.method == "dear"
+
+
 def _authors_discount(cfg):
     import envs  # the suite's default action repeat; imported late so --help needs no MuJoCo
     return round(0.99 ** (1 + (cfg.action_repeat or envs.default_action_repeat(cfg.env))), 6)
@@ -184,8 +188,9 @@ def _authors_discount(cfg):
 # (github.com/sear-rl/sear-rl) differ: (field, applies to, authors' value, source). The Config defaults
 # are the paper's values; --recipe authors replaces these unless the flag is given explicitly.
 RECIPES = {"authors": (
-    ("recon_coef", lambda cfg: True, 1.0, "sear/cfgs/agent/sear.yaml: reconstruction_loss_coeff"),
-    ("mask_coef", lambda cfg: True, 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
+    # (DEAR's c1 and c2 are its own under both recipes: TASK_DEFAULTS)
+    ("recon_coef", lambda cfg: not _dear(cfg), 1.0, "sear/cfgs/agent/sear.yaml: reconstruction_loss_coeff"),
+    ("mask_coef", lambda cfg: not _dear(cfg), 0.25, "sear/cfgs/agent/sear.yaml: mask_loss_coeff"),
     ("nstep", _walker, 1, "sear/cfgs/task/distracting_walker_walk.yaml: nstep (DrQ-v2's walker config)"),
     ("batch_size", _walker, 512, "sear/cfgs/task/distracting_walker_walk.yaml: batch_size"),
     ("lr", _humanoid, 8e-5, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: lr (DrQ-v2's)"),
@@ -207,11 +212,14 @@ def _drqv2_std_steps(cfg):
     return envs.exploration_std_steps(cfg.env)
 
 
-# Per-task defaults, applied under both recipes before the recipe's own rows. The paper's multi-task
-# settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a smaller
-# latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
-# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task.
+# Per-task (and per-method) defaults, applied under both recipes before the recipe's own rows. The paper's
+# multi-task settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a
+# smaller latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
+# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task. DEAR
+# takes c1 (its cosine term) and c2 from its released dear.yaml (docs/dear.md).
 TASK_DEFAULTS = (
+    ("recon_coef", _dear, 1.0, "DEAR's dear/cfgs/agent/dear.yaml: reconstruction_loss_coeff (its cosine term)"),
+    ("mask_coef", _dear, 0.25, "DEAR's dear/cfgs/agent/dear.yaml: mask_loss_coeff"),
     ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
     ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
@@ -323,9 +331,9 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
                               "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
-                              "eval_every", "mae_patch", "curl_dim", "drm_perturb_every")),
+                              "eval_every", "mae_patch", "drm_perturb_every")),
     (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
-                                "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip",
+                                "recon_coef", "mask_coef", "ae_latent_lambda", "curl_lr", "std_end", "std_clip",
                                 "eval_episodes_per_task", "snapshot_minutes", "threads", "drm_dormant_temp",
                                 "drm_lambda_temp", "drm_perturb_rate")),
     ("in [0, 1]", lambda v: 0.0 <= v <= 1.0, ("discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio",
@@ -520,7 +528,7 @@ def init_fields(cfg, init_parts: str) -> tuple[str, ...]:
     source run's."""
     fields = ("method", "latent_dim", "frame_stack")
     if init_parts != "encoder" and cfg.method == "curl":
-        fields += ("curl_dim",)  # CURL's projection heads are its auxiliary networks
+        fields += ("feature_dim",)  # CURL's W and key read the critic's feature
     if init_parts == "all":
         fields += ("feature_dim", "hidden_dim")
     return fields

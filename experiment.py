@@ -294,12 +294,24 @@ def eval_columns(episodes) -> dict:
 # ================================================================================================
 # --evaluate: a snapshot scored on its eval env, nothing written but a new video
 # ================================================================================================
+def load_agent(agent, state: dict, cfg, flag: str) -> None:
+    """A snapshot's agent state into `agent`. One that this sear.py cannot take (a curl run from before
+    CURL followed curl_sac.py: its networks differ) is one line."""
+    try:
+        agent.load_state_dict(state)
+    except (RuntimeError, KeyError, ValueError) as e:  # names, shapes or optimiser groups that differ
+        first = str(e).strip().splitlines()[0][:120] if str(e).strip() else type(e).__name__
+        raise cli.ConfigError(f"{flag}: the snapshot's {cfg.method} networks do not fit this sear.py's (saved by "
+                              f"an older version?): {first}") from None
+
+
 def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate) -> None:
-    """--evaluate RUN_DIR: `agent` (the snapshot's, loaded) on the run's eval env for --eval-episodes
+    """--evaluate RUN_DIR: `agent`, given the snapshot's weights, on the run's eval env for --eval-episodes
     episodes by sear.evaluate, with the evaluations' own reset seeds (the run's episode count gives
     eval.csv's row at the snapshot's frame again). Prints the mean return (and success) with 95% CIs
     over the episodes, and the decoder metrics. Writes nothing into the run but, with --save-video, a
     new videos/evaluate_<frame>[-k].mp4. Takes no lock: a running run can be scored."""
+    load_agent(agent, snapshot["agent"], cfg, "--evaluate")
     for message in cli.start_warnings(cfg, run, training=False):
         cli.warn(message)
     step = snapshot["counters"]["step"]
@@ -495,20 +507,20 @@ def copy_parts(agent, source: dict, parts: str) -> None:
     """Load `parts` of a saved agent state (a snapshot's "agent") into a freshly built agent; the other
     networks keep their fresh initialisation and the optimisers stay fresh (Adam's moments are
     empty; the loads write into the parameters the optimisers already hold). "aux" is the method's
-    auxiliary networks: SEAR's two decoders, AE's and MAE's decoder, CURL's heads and key encoder;
+    auxiliary networks: SEAR's two decoders, AE's and MAE's decoder, CURL's W and key encoder;
     drq and rgbm have none. As in the authors' load_pretrained_weights, the target critic starts as
     a copy of the loaded critic."""
     names = cli.INIT_PARTS[parts]
     agent.encoder.load_state_dict(source["encoder"])
-    if agent.aux is not None:
-        if "aux" in names:
-            agent.aux.load_state_dict(source["aux"])
-        elif hasattr(agent.aux, "key_encoder"):  # CURL's momentum copy of the encoder starts equal to it
-            agent.aux.key_encoder.load_state_dict(source["encoder"])
+    if agent.aux is not None and "aux" in names:  # an aux's own optimiser and counter (CURL's) stay fresh
+        fresh = {k: v for k, v in agent.aux.state_dict().items() if k.endswith("_extra_state")}
+        agent.aux.load_state_dict({**source["aux"], **fresh})
     if "actor" in names:
         agent.actor.load_state_dict(source["actor"])
         agent.critic.load_state_dict(source["critic"])
         agent.critic_target.load_state_dict(agent.critic.state_dict())
+    if hasattr(agent.aux, "key"):  # CURL's momentum key starts as a copy of what was loaded, as the target critic
+        agent.aux.key.load_state_dict(agent.aux.query[0].state_dict())
 
 
 # ================================================================================================
@@ -810,7 +822,7 @@ class RunDir:
         """The resumed snapshot's weights, RNG states and buffer; rows logged after it go to side
         files. Returns its counters and wall time."""
         state, cfg = self.resumed, self.cfg
-        self.agent.load_state_dict(state["agent"])
+        load_agent(self.agent, state["agent"], cfg, "--resume")
         set_rng_state(state["rng"])
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]

@@ -5,8 +5,8 @@ decaying exploration noise) whose image encoder is also trained by two decoders 
 two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
 the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
 c2 = 0.0025). The paper's baselines are the same agent with another auxiliary loss (one seam,
-`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel) and sear-nosplit; --drm adds
-DrM to any of them (drm.py).
+`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel), sear-nosplit; beyond it,
+dear. --drm adds DrM to any of them (drm.py).
 
 In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
 6. Replay buffer, 7. Evaluation, 8. Training loop. Around it: experiment.py (envs, the run directory,
@@ -43,7 +43,7 @@ class Config(drm.DrMConfig):
     """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help); DrM's
     (--drm) come from drm.DrMConfig. How a process runs it (device, files, snapshots) is cli.RunConfig."""
     env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
-    method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit")
+    method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit | dear")
     seed: int = arg(1, "seeds python, numpy, torch and the environments")
     frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action repeat)")
     precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
@@ -105,9 +105,9 @@ class Config(drm.DrMConfig):
     ae_latent_lambda: float = arg(0.0, "ae: L2 penalty on the latent (authors' DrQ-AE: none; SAC-AE: 1e-6)")
     mae_ratio: float = arg(0.75, "mae: fraction of patches hidden (MAE, He et al. 2022)")
     mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)")
-    curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder (CURL, Laskin et al. 2020)")
-    curl_dim: int = arg(128, "curl: projection size of query and key")
-    curl_coef: float = arg(1.0, "curl: weight of the contrastive loss (CURL adds it with weight 1)")
+    curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder, every 2nd update (CURL, Laskin et al. 2020)")
+    curl_lr: float = arg(1e-3, "curl: Adam learning rate of CURL's own step (curl_sac.py: encoder_lr)")
+    dear_feature: str = arg("pull", "dear: pull (1 - cos, its released code) | push (max(0, cos))", ("pull", "push"))
 
 
 # ================================================================================================
@@ -293,24 +293,24 @@ class AuxLoss(nn.Module):
     """The seam. An auxiliary loss sees the latent of the augmented observation (which also feeds
     the critic) and the augmented image and mask (same shift); baselines that need more take it as
     keywords (`encoder`, the un-augmented `obs`). It returns its weighted contribution to Eq. 6 and
-    its unweighted terms for the logs. Its parameters are optimised together with the encoder and
-    the critic. METHODS builds it with build(cfg, encoder)."""
+    its unweighted terms for the logs; its parameters join the encoder's and critic's optimiser (CURL
+    steps its own, in after_update). METHODS builds it with build(cfg, encoder, critic)."""
     metric_names: tuple[str, ...] = ()
     decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
 
     @classmethod
-    def build(cls, cfg, encoder):  # METHODS' constructor; SEAR's own takes plain arguments
-        return cls(cfg, encoder)
+    def build(cls, cfg, encoder, critic):  # METHODS' constructor; SEAR's own takes plain arguments
+        return cls(cfg, encoder, critic)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
-        raise NotImplementedError
+        return latent.new_zeros(()), {}  # nothing in Eq. 6 (CURL: its own step, after_update)
 
     def decode(self, latent) -> dict:
         """What the decoders make of a latent, for the evaluation's metrics and videos."""
         return {}
 
-    def after_update(self, encoder):
-        """Called after each optimiser step (CURL updates its momentum encoder here)."""
+    def after_update(self, obs) -> dict:  # at the end of each update (CURL's own step): its terms for the logs
+        return {}
 
 
 class SearAux(AuxLoss):
@@ -328,7 +328,7 @@ class SearAux(AuxLoss):
         self.mask_decoder = Decoder(dec_in, frame_stack)
 
     @classmethod
-    def build(cls, cfg, encoder):
+    def build(cls, cfg, encoder, critic):
         return cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
 
     def decoder_inputs(self, latent):
@@ -355,6 +355,27 @@ class SearNoSplitAux(SearAux):
     split = False
 
 
+class DEARAux(SearAux):
+    """DEAR (Pore et al. 2024; docs/dear.md): SEAR's mask half and, in place of Eq. 5, c1 x a cosine term between
+    the halves that trains z_R alone: pull = 1 - cos (its released code), push = max(0, cos)."""
+    metric_names, decodes, target = ("feature_loss", "mask_loss"), ("mask",), 1.0
+
+    @classmethod
+    def build(cls, cfg, encoder, critic):
+        aux = cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
+        aux.recon_decoder, aux.target = None, {"pull": 1.0, "push": -1.0}[cfg.dear_feature]  # no reconstruction
+        return aux
+
+    def forward(self, latent, obs_aug, mask_aug, **extra):
+        z, z_r = self.decoder_inputs(latent)
+        feature = F.cosine_embedding_loss(z.detach(), z_r, torch.full_like(z[:, 0], self.target))  # DEAR's loss
+        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
+        return self.c1 * feature + self.c2 * mask_loss, {"feature_loss": feature.item(), "mask_loss": mask_loss.item()}
+
+    def decode(self, latent):
+        return {"mask": self.mask_decoder(self.decoder_inputs(latent)[1])}
+
+
 class ReconstructionAux(AuxLoss):
     """One reconstruction decoder on the whole latent: what DrQ-AE and DrQ-MAE share. At evaluation
     nothing is hidden: the decoder reconstructs from the whole image's latent."""
@@ -370,7 +391,7 @@ class AEAux(ReconstructionAux):
     starts from 32 channels, the loss weight is twice SEAR's c1, and there is no latent penalty
     (SAC-AE's is --ae-latent-lambda)."""
 
-    def __init__(self, cfg: Config, encoder: nn.Module):
+    def __init__(self, cfg: Config, encoder: nn.Module, critic: nn.Module | None = None):
         super().__init__()
         self.c1, self.latent_lambda = 2 * cfg.recon_coef, cfg.ae_latent_lambda
         self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack, in_channels=32)
@@ -398,7 +419,7 @@ class MAEAux(ReconstructionAux):
     """DrQ-MAE: hide random patches (the same patches in every stacked frame), encode the masked
     image, reconstruct the whole stack, and score only the hidden pixels."""
 
-    def __init__(self, cfg: Config, encoder: nn.Module):
+    def __init__(self, cfg: Config, encoder: nn.Module, critic: nn.Module | None = None):
         super().__init__()
         self.c1, self.ratio, self.patch = cfg.recon_coef, cfg.mae_ratio, cfg.mae_patch
         self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack)
@@ -412,43 +433,41 @@ class MAEAux(ReconstructionAux):
 
 
 class CURLAux(AuxLoss):
-    """CURL: query = online encoder on the augmented view, key = momentum encoder on a differently
-    shifted view of the same observation; logits q W k^T (B x B), cross-entropy with the positives
-    on the diagonal. A projection (Linear + LayerNorm) keeps W small for the 4096-d latent."""
+    """CURL as curl_sac.py (docs/baselines.md): W between the critic's feature (encoder, then its trunk's Linear +
+    LayerNorm) of one shift and an EMA copy's of another; not in Eq. 6 but its own Adam step after each update."""
     metric_names = ("curl_loss",)
 
-    def __init__(self, cfg: Config, encoder: nn.Module):
+    def __init__(self, cfg: Config, encoder: nn.Module, critic: nn.Module):
         super().__init__()
-        self.coef, self.tau = cfg.curl_coef, cfg.curl_tau
-        self.query_head = nn.Sequential(nn.Linear(encoder.repr_dim, cfg.curl_dim), nn.LayerNorm(cfg.curl_dim))
-        self.W = nn.Parameter(torch.rand(cfg.curl_dim, cfg.curl_dim))
-        # The key side is not trained by gradients, only by EMA; keep it out of state the optimiser sees.
-        self.key_encoder = copy.deepcopy(encoder).requires_grad_(False)
-        self.key_head = copy.deepcopy(self.query_head).requires_grad_(False)
+        self.tau, self.updates, lr = cfg.curl_tau, 0, cfg.curl_lr
+        query = nn.Sequential(encoder, *critic.trunk[:2])  # curl_sac.py's encoder output: the critic's feature
+        self.query, self.key = (query,), copy.deepcopy(query).requires_grad_(False)  # a tuple: the agent's own
+        self.W = nn.Parameter(torch.rand(cfg.feature_dim, cfg.feature_dim))
+        self.opt = torch.optim.Adam([{"params": query.parameters(), "lr": 2 * lr}, {"params": [self.W]}], lr=lr)
 
-    def logits(self, q, k):
-        logits = q.float() @ self.W @ k.float().T
-        return logits - logits.max(dim=1, keepdim=True).values  # stability, as CURL
+    def after_update(self, obs):  # curl_sac.py: the key's EMA every 2nd update, then update_cpc (anchor, positive)
+        if self.updates % 2 == 0:
+            for p, p_key in zip(self.query[0].parameters(), self.key.parameters()):
+                p_key.lerp_(p.detach(), self.tau)
+        self.updates += 1
+        logits = self.query[0](random_shift(obs)) @ (self.W @ self.key(random_shift(obs)).T)
+        loss = F.cross_entropy(logits - logits.max(1, keepdim=True).values, torch.arange(len(obs), device=obs.device))
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return {"curl_loss": loss.item()}
 
-    def forward(self, latent, obs_aug, mask_aug, encoder, obs, **extra):
-        q = self.query_head(latent)
-        with torch.no_grad():
-            k = self.key_head(self.key_encoder(random_shift(obs)))
-        logits = self.logits(q, k)
-        curl_loss = F.cross_entropy(logits, torch.arange(len(q), device=q.device))
-        return self.coef * curl_loss, {"curl_loss": curl_loss.item()}
+    def get_extra_state(self):  # for an exact resume: the EMA's phase and CURL's own Adam
+        return self.updates, self.opt.state_dict()
 
-    @torch.no_grad()
-    def after_update(self, encoder):
-        for online, key in ((encoder, self.key_encoder), (self.query_head, self.key_head)):
-            for p, p_key in zip(online.parameters(), key.parameters()):
-                p_key.lerp_(p, self.tau)
+    def set_extra_state(self, state):
+        self.updates, _ = state[0], self.opt.load_state_dict(state[1])
 
 
 @dataclass(frozen=True)
 class Method:
     doc: str
-    aux: type[AuxLoss] | None = None  # built as aux.build(cfg, encoder); None: only the critic trains the encoder
+    aux: type[AuxLoss] | None = None  # aux.build(cfg, encoder, critic); None: only the critic trains the encoder
     encoder: str = "pooled"           # "pooled" (SEAR's) or "drq" (DrQ-v2's, flattened)
     mask_input: bool = False          # DrQ-RGBM: the mask is a 4th channel of every stacked frame
     uses_mask: bool = False           # False: the env skips the segmentation render (it costs a second pass)
@@ -462,6 +481,7 @@ METHODS = {
     "curl": Method("CURL: contrastive, momentum key", aux=CURLAux),
     "rgbm": Method("DrQ-RGBM: mask appended to the input", encoder="drq", mask_input=True, uses_mask=True),
     "sear-nosplit": Method("SEAR without latent split", aux=SearNoSplitAux, uses_mask=True),
+    "dear": Method("DEAR: mask half + cosine term, no reconstruction", aux=DEARAux, uses_mask=True),
 }
 
 
@@ -508,7 +528,7 @@ class Agent:
         self.actor = Actor(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
         self.critic = Critic(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.aux = self.method.aux.build(cfg, self.encoder).to(device) if self.method.aux else None
+        self.aux = self.method.aux.build(cfg, self.encoder, self.critic).to(device) if self.method.aux else None
         # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one
         # optimiser for all of them equals DrQ-v2's separate encoder/critic optimisers.
         model_params = [*self.encoder.parameters(), *self.critic.parameters()]
@@ -591,8 +611,6 @@ class Agent:
         self.model_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.model_opt.step()
-        if self.aux is not None:
-            self.aux.after_update(self.encoder)
         return latent.detach(), metrics
 
     def update_actor(self, latent, step):
@@ -621,6 +639,8 @@ class Agent:
         with torch.no_grad():  # Polyak averaging of the target critic
             for p, p_t in zip(self.critic.parameters(), self.critic_target.parameters()):
                 p_t.lerp_(p, self.cfg.critic_tau)
+        if self.aux is not None:  # CURL's own step, last as in curl_sac.py
+            metrics.update(self.aux.after_update(batch.obs))
         return metrics
 
     def state_dict(self):
@@ -883,7 +903,6 @@ def evaluate_snapshot(cfg: Config, run: cli.RunConfig, snapshot: dict) -> None:
     device = cli.torch_setup(run)
     _, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask, train=False)
     agent = Agent(cfg, eval_env.action_space.shape[0], device)
-    agent.load_state_dict(snapshot["agent"])
     experiment.score_snapshot(cfg, run, snapshot, agent, eval_env, evaluate)
 
 

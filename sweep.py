@@ -101,6 +101,7 @@ def pick_variants(wanted: tuple[str, ...] | None, have: tuple[Variant, ...]) -> 
 
 
 BASELINES = plain("sear", "drq", "ae", "mae", "curl")
+DEAR = (Variant("dear", "dear"), Variant("dear-push", "dear", ("--dear-feature", "push")), *plain("sear", "drq"))
 # The authors' task cfgs (sear/cfgs/task/{metaworld,kitchen,adroit,distracting}.yaml) all train for
 # num_train_frames 2.5M with the exploration std decaying over 500k agent steps (sear.py's default).
 # Every grid runs the paper's recipe; add `--recipe authors` for the authors' released values.
@@ -138,6 +139,14 @@ GRIDS = {
                   Variant("sear-no-recon", "sear", ("--recon-coef", "0")),
                   Variant("sear-no-mask", "sear", ("--mask-coef", "0"))),
         doc="noisy / approximate masks, rgbm, no split, c1/c2 on 3 Meta-World tasks"),
+    # Beyond the paper: DEAR (Pore et al. 2024) on its two benchmarks, with both signs of its cosine term
+    # (the released code pulls the halves together, its paper separates them: docs/dear.md).
+    "dear": Grid(
+        envs=("walker-walk-distracting", "cup-catch-distracting"), variants=DEAR, flags=PAPER_FRAMES,
+        metric="return", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Distracting Control walker-walk, cup-catch"),
+    "dear-kitchen": Grid(
+        envs=("kitchen-kettle", "kitchen-light", "kitchen-slider"), variants=DEAR, flags=PAPER_FRAMES,
+        metric="success", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Franka Kitchen kettle, light, slider"),
 }
 # Named so that asking for them gives a clear answer instead of "unknown grid".
 NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) are two "

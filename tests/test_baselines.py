@@ -1,4 +1,5 @@
-"""The baselines and ablations behind the auxiliary-loss seam: drq, ae, mae, curl, rgbm, sear-nosplit."""
+"""The baselines and ablations behind the auxiliary-loss seam: drq, ae, mae, curl, rgbm, sear-nosplit, dear
+(CURL's own checks: test_curl.py; DEAR's: test_dear.py)."""
 import csv
 
 import numpy as np
@@ -39,7 +40,8 @@ def test_every_method_builds_acts_and_updates(method, device):
 
 
 @pytest.mark.parametrize("method, terms", [("sear", ["recon_loss", "mask_loss"]), ("sear-nosplit", ["recon_loss", "mask_loss"]),
-                                           ("ae", ["recon_loss"]), ("mae", ["recon_loss"]), ("curl", ["curl_loss"])])
+                                           ("ae", ["recon_loss"]), ("mae", ["recon_loss"]), ("curl", ["curl_loss"]),
+                                           ("dear", ["mask_loss"])])
 def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
     torch.manual_seed(0)
     agent = sear.Agent(tiny_cfg(method, lr=1e-3), action_dim=2, device=device)
@@ -52,27 +54,6 @@ def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
     for t in terms:
         first, last = np.mean(history[t][:5]), np.mean(history[t][-5:])
         assert last < 0.8 * first, f"{method} {t}: {first:.3f} -> {last:.3f}"
-
-
-def test_curl_logits_are_b_by_b_and_identity_w_picks_the_diagonal(device):
-    cfg = tiny_cfg("curl")
-    agent = sear.Agent(cfg, action_dim=2, device=device)
-    aux = agent.aux
-    q = torch.nn.functional.normalize(torch.randn(16, cfg.curl_dim, device=device), dim=1)
-    with torch.no_grad():
-        aux.W.copy_(torch.eye(cfg.curl_dim))
-    logits = aux.logits(q, q)
-    assert logits.shape == (16, 16)
-    assert torch.equal(logits.argmax(dim=1).cpu(), torch.arange(16))
-    # the key encoder follows the online encoder by EMA (tau), not by gradients
-    assert not any(p.requires_grad for p in aux.key_encoder.parameters())
-    key_before = [p.clone() for p in aux.key_encoder.parameters()]
-    with torch.no_grad():
-        for p in agent.encoder.parameters():
-            p.add_(1.0)
-    aux.after_update(agent.encoder)
-    for kb, k, p in zip(key_before, aux.key_encoder.parameters(), agent.encoder.parameters()):
-        torch.testing.assert_close(k, kb + cfg.curl_tau * (p - kb))
 
 
 def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels(device):

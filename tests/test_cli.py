@@ -280,23 +280,28 @@ def straight_and_resumed(common, tmp_path):
     return only_run_dir(straight), split_dir, r
 
 
-def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path):
+@pytest.mark.parametrize("method, terms", [("sear", ["recon_loss", "mask_loss"]), ("curl", ["curl_loss"])])
+def test_resume_replays_exactly_what_an_uninterrupted_run_does(tmp_path, method, terms):
     """Snapshots sit between episodes and every episode's reset seed follows from its number, so
-    48 frames + resume to 80 must equal 80 frames in one go: same evaluations, losses, weights."""
+    48 frames + resume to 80 must equal 80 frames in one go: same evaluations, losses, weights (CURL:
+    also its key's EMA phase and its own Adam, saved with its networks)."""
     import torch
 
-    straight_dir, split_dir, _ = straight_and_resumed(["--env", "walker-walk", "--seed", "5", "--save-buffer", *TINY],
-                                                      tmp_path)
+    common = ["--env", "walker-walk", "--method", method, "--seed", "5", "--save-buffer", *TINY]
+    straight_dir, split_dir, _ = straight_and_resumed(common, tmp_path)
 
     def table(run_dir, name, cols):
         return [[r[c] for c in cols] for r in rows(run_dir / name)]
 
-    losses = ["frame", "return", "critic_loss", "actor_loss", "recon_loss", "mask_loss"]
+    losses = ["frame", "return", "critic_loss", "actor_loss", *terms]
     assert table(split_dir, "eval.csv", ["frame", "return"]) == table(straight_dir, "eval.csv", ["frame", "return"])
     assert table(split_dir, "train.csv", losses) == table(straight_dir, "train.csv", losses)
-    a = torch.load(straight_dir / "snapshot.pt", weights_only=False)["agent"]["encoder"]
-    b = torch.load(split_dir / "snapshot.pt", weights_only=False)["agent"]["encoder"]
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    a = torch.load(straight_dir / "snapshot.pt", weights_only=False)["agent"]
+    b = torch.load(split_dir / "snapshot.pt", weights_only=False)["agent"]
+    assert all(torch.equal(a["encoder"][k], b["encoder"][k]) for k in a["encoder"])
+    if method == "curl":
+        assert all(torch.equal(v, b["aux"][k]) for k, v in a["aux"].items() if k != "_extra_state")
+        assert a["aux"]["_extra_state"][0] == b["aux"]["_extra_state"][0] > 0  # the updates so far
 
 
 @pytest.mark.parametrize("action_repeat", [1, 2])
