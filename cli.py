@@ -290,7 +290,8 @@ def build_parser(Config, methods: dict) -> OneLineParser:
     for title, defaults, fields in field_groups(Config):
         group = parser.add_argument_group(title)
         for f in fields:
-            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})"
+            # argparse formats help with %: a doc's "0.8%" must reach it as "0.8%%"
+            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})".replace("%", "%%")
             choices = f.metadata.get("choices")
             if f.name == "method":  # the METHODS table documents itself
                 help_text = "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"

@@ -39,9 +39,10 @@ from cli import arg
 # 1. Config
 # ================================================================================================
 @dataclass
-class Config(drm.DrMConfig):
-    """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help); DrM's
-    (--drm) come from drm.DrMConfig. How a process runs it (device, files, snapshots) is cli.RunConfig."""
+class Config(experiment.EnvConfig, drm.DrMConfig):
+    """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help). The
+    envs' settings (masks, distractors, rendering) come from experiment.EnvConfig, DrM's (--drm) from
+    drm.DrMConfig. How a process runs it (device, files, snapshots) is cli.RunConfig."""
     env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
     method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit | dear")
     seed: int = arg(1, "seeds python, numpy, torch and the environments")
@@ -52,29 +53,6 @@ class Config(drm.DrMConfig):
     action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
     max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
-    mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
-    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian blur (sigma 0.5), "
-                                   "threshold 0.9 (envs.approximate_mask)")
-    mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')",
-                               ("majority", "stride"))
-    mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
-                                  "applied to every frame gives every mask target and RGBM's input mask; "
-                                  "--mask-noise / --mask-approx then corrupt its masks)")
-    learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's mask in evaluation "
-                                       "episodes only to report the learned masks' IoU (eval.csv learned_mask_iou), "
-                                       "never as a target; --no-learned-mask-iou never renders one")
-    backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py --fetch-davis), a "
-                               "DAVIS or image folder, or '' = built-in procedural images (not the paper's)")
-    difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all backgrounds (authors: medium)",
-                          ("easy", "medium", "hard"))
-    render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)",
-                              ("paper", "fast"))
-    pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, under DrQ-v2's "
-                                     "curves: 0.8% less about the hinge)", ("exact", "2021"))
-    camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
-    color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
-    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)",
-                              ("fixed", "random"))
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
     seed_frames: int = arg(4000, "frames collected before the first update (DrQ-v2's num_seed_frames)")
@@ -115,12 +93,8 @@ class Config(drm.DrMConfig):
 # ================================================================================================
 def weight_init(m):
     """DrQ-v2's init: orthogonal weights, zero biases (ReLU gain for convolutions)."""
-    if isinstance(m, nn.Linear):
-        nn.init.orthogonal_(m.weight.data)
-        if m.bias is not None:
-            m.bias.data.fill_(0.0)
-    elif isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
-        nn.init.orthogonal_(m.weight.data, nn.init.calculate_gain("relu"))
+    if isinstance(m, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
+        nn.init.orthogonal_(m.weight.data, 1.0 if isinstance(m, nn.Linear) else nn.init.calculate_gain("relu"))
         if m.bias is not None:
             m.bias.data.fill_(0.0)
 
@@ -650,12 +624,9 @@ class Agent:
                 "model_opt": self.model_opt.state_dict(), "actor_opt": self.actor_opt.state_dict()}
 
     def load_state_dict(self, state):
-        for name in ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt"):
-            getattr(self, name).load_state_dict(state[name])
-        if self.aux is not None:
-            self.aux.load_state_dict(state["aux"])
-        if self.drm is not None:
-            self.drm.load_state_dict(state["drm"])
+        for name in ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux", "drm"):
+            if getattr(self, name) is not None:  # aux: the method's networks, drm: DrM's (None without)
+                getattr(self, name).load_state_dict(state[name])
 
 
 # ================================================================================================

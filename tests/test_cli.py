@@ -26,6 +26,18 @@ def run(args, tmp_path, timeout=600):
                           capture_output=True, text=True, timeout=timeout, cwd=tmp_path, env=env)
 
 
+def test_help_shows_every_flag_in_its_group(tmp_path):
+    """--help lists every flag, the experiment's settings by the dataclass that holds them."""
+    import cli
+    import sear
+    r = run(["--help"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert all(name in r.stdout for name in cli.flag_names(sear.Config))
+    groups = [line for line in r.stdout.splitlines() if line.startswith("the ")]
+    assert groups == ["the experiment (sear.py Config):", "the experiment (experiment.py EnvConfig):",
+                      "the experiment (drm.py DrMConfig):", "the run (cli.py RunConfig):"]
+
+
 def _sigint_default():
     """A suite started in the background (`cmd &`, nohup) hands its children SIGINT ignored: undo that."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
