@@ -15,6 +15,7 @@ import dataclasses
 import difflib
 import errno
 import json
+import math
 import os
 import signal
 import socket
@@ -218,6 +219,12 @@ TASK_DEFAULTS = (
     ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
      "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
 )
+# What --help says of the rows above: a field's default there is the value where no row applies.
+TASK_DEFAULTS_HELP = {
+    "latent_dim": "512 on the task sets (metaworld-mt3, -mt10, -mt50)",
+    "std_steps": "2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 (easy), 500000 (medium, and "
+                 "every task not in its table), 2000000 (hard: humanoid)",
+}
 
 
 def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
@@ -251,7 +258,8 @@ def build_parser(Config, methods: dict) -> OneLineParser:
     for cls, title in ((Config, "the experiment (sear.py Config)"), (RunConfig, "the run (cli.py RunConfig)")):
         group, defaults = parser.add_argument_group(title), cls()
         for f in dataclasses.fields(cls):
-            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})"
+            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r}"
+            help_text += f"; per task: {TASK_DEFAULTS_HELP[f.name]})" if f.name in TASK_DEFAULTS_HELP else ")"
             choices = f.metadata.get("choices")
             if f.name == "method":  # the METHODS table documents itself
                 help_text = "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
@@ -264,6 +272,23 @@ def build_parser(Config, methods: dict) -> OneLineParser:
                 group.add_argument(flag(f.name), type=typ, default=argparse.SUPPRESS, help=help_text,
                                    choices=choices)
     return parser
+
+
+def negative_numbers_as_values(argv: list[str]) -> list[str]:
+    """'--lr -1e-4' as '--lr=-1e-4': argparse's rule for negative numbers knows -1 and -1.5 but not
+    -1e-4, takes it for a flag and says 'expected one argument' instead of what is wrong with it."""
+    joined = []
+    for token in argv:
+        if joined and joined[-1].startswith("--") and "=" not in joined[-1] and token.startswith("-"):
+            try:
+                float(token)
+            except ValueError:
+                pass
+            else:
+                joined[-1] += "=" + token
+                continue
+        joined.append(token)
+    return joined
 
 
 def flag_names(Config) -> set[str]:
@@ -292,8 +317,8 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
                               "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
-                              "eval_every", "mae_patch", "curl_dim")),
-    (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
+                              "eval_every", "mae_patch", "curl_dim", "lr")),
+    (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps",
                                 "recon_coef", "mask_coef", "ae_latent_lambda", "curl_coef", "std_end", "std_clip",
                                 "eval_episodes_per_task", "snapshot_minutes", "threads")),
     ("in [0, 1]", lambda v: 0.0 <= v <= 1.0, ("discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio",
@@ -302,7 +327,12 @@ RANGES = (
 
 
 def validate(cfg, run: RunConfig, methods: dict) -> None:
-    """What the parser's types and choices cannot see: ranges and the rules between fields."""
+    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields."""
+    for settings in (cfg, run):
+        for f in dataclasses.fields(settings):
+            value = getattr(settings, f.name)
+            if isinstance(value, float) and not math.isfinite(value):  # inf passes every range, NaN none
+                raise ConfigError(f"{flag(f.name)} must be a finite number, got {value}")
     for rule, holds, names in RANGES:
         for name in names:
             value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
@@ -373,7 +403,13 @@ def load_snapshot(run_dir, flag="--resume", mmap=False):
         return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as e:  # corrupt or foreign file: say so in one line
         reason = first_sentence(e)
-        raise ConfigError(f"{flag}cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+        what = f"{type(e).__name__}" + (f": {reason}" if reason else "")
+        if isinstance(e, EOFError) or "failed finding central directory" in str(e):  # a zip without its end
+            raise ConfigError(f"{flag}'{path}' is cut short ({what.rstrip('.')}): sear.py writes a snapshot whole or "
+                              f"not at all, so this is a copy or move that did not finish; copy snapshot.pt again "
+                              f"from the run's original folder, where its last snapshot stands (this folder keeps "
+                              f"no other)") from None
+        raise ConfigError(f"{flag}cannot read '{path}': {what}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -537,6 +573,7 @@ def parse_args(argv, Config, methods: dict) -> tuple:
     """(Config, RunConfig, snapshot) from the flags; with --resume or --evaluate, the run's saved
     config (plus the few flags that may change) and its snapshot, else snapshot None."""
     parser = build_parser(Config, methods)
+    argv = negative_numbers_as_values(sys.argv[1:] if argv is None else list(argv))
     namespace, extras = parser.parse_known_args(argv)
     if extras:
         parser.error(unknown_arguments(extras, flag_names(Config)))

@@ -119,6 +119,12 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--env", "walker-walk-distracting", "--backgrounds", "does/not/exist"], "does not exist"),
     (["--mask-downsample", "every-other"], "argument --mask-downsample: invalid choice: 'every-other'"),
     (["--snapshot-minutes", "-1"], "--snapshot-minutes must be >= 0"),
+    # Each of these used to start a run (TINY: a short one): inf passes every range, and a run that
+    # cannot learn or ends in a PhysicsError traceback is worse than a refusal.
+    ([*TINY, "--recon-coef", "inf"], "--recon-coef must be a finite number, got inf"),
+    ([*TINY, "--mask-coef", "-inf"], "--mask-coef must be a finite number, got -inf"),
+    ([*TINY, "--lr", "0"], "--lr must be > 0, got 0.0"),
+    ([*TINY, "--lr", "-1e-4"], "--lr must be > 0, got -0.0001"),  # a value, not "expected one argument"
 ])
 def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
     r = run(args, tmp_path)
@@ -137,7 +143,11 @@ def truncated_torch_file():
 
 @pytest.mark.parametrize("content, reason", [
     (b"this is not a torch file", "UnpicklingError: could not find MARK."),
-    (truncated_torch_file(), "PytorchStreamReader failed reading zip archive: failed finding central directory."),
+    (truncated_torch_file(), "is cut short (RuntimeError: PytorchStreamReader failed reading zip archive: failed "
+                             "finding central directory): sear.py writes a snapshot whole or not at all, so this is a "
+                             "copy or move that did not finish; copy snapshot.pt again from the run's original "
+                             "folder, where its last snapshot stands (this folder keeps no other)"),
+    (b"", "is cut short (EOFError: Ran out of input)"),
 ])
 def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path, content, reason):
     run_dir = tmp_path / "runs" / "walker-walk__sear__1__x"
@@ -147,8 +157,11 @@ def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path, content, r
     before = tree_digest(run_dir)
     r = run(["--resume", str(run_dir)], tmp_path)
     assert r.returncode != 0
-    assert len(r.stderr.strip().splitlines()) == 1 and "cannot read" in r.stderr, r.stderr
-    assert r.stderr.rstrip().endswith(reason), r.stderr  # whole sentences, never cut mid-word
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    if content.startswith(b"this"):
+        assert "cannot read" in r.stderr and r.stderr.rstrip().endswith(reason), r.stderr  # whole sentences
+    else:  # cut short: what to do about it
+        assert f"--resume: '{run_dir / 'snapshot.pt'}' {reason}" in r.stderr, r.stderr
     assert tree_digest(run_dir) == before
 
 
@@ -238,6 +251,17 @@ def test_progress_speed_and_eta_count_training_and_evaluations_apart(capsys):
     p.update(500, "eval 3/10 step 7", 75.0)
     out = capsys.readouterr().out
     assert out.startswith("\rframe 500/1000 (50.0%) | 10.0 fps | ETA 00:01:15 | eval 3/10 step 7") and "\n" not in out
+
+
+def test_help_shows_per_task_defaults_as_such():
+    import cli
+    import sear
+    text = " ".join(cli.build_parser(sear.Config, sear.METHODS).format_help().split())
+    assert "(default: 4096; per task: 512 on the task sets (metaworld-mt3, -mt10, -mt50))" in text
+    assert ("(default: 500000; per task: 2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 "
+            "(easy), 500000") in text
+    assert "frames between evaluations (snapshots follow --snapshot-minutes) (default: 10000)" in text
+    assert set(cli.TASK_DEFAULTS_HELP) == {row[0] for row in cli.TASK_DEFAULTS}
 
 
 def test_resume_refuses_to_change_the_experiment(tmp_path):
