@@ -144,6 +144,11 @@ def write_atomically(path, write, mode="wb"):
             os.remove(tmp)
 
 
+class NonFinite(Exception):
+    """A loss, Q or action that is no longer a finite number: the run diverged. It stops (exit 1) in
+    one line that says where and what stands (experiment.RunDir adds the frame and the snapshot)."""
+
+
 class Interrupted(Exception):
     """Ctrl-C or SIGTERM during training; the message says what was saved and how to continue."""
 
@@ -608,9 +613,9 @@ def parse_args(argv, Config, methods: dict) -> tuple:
 
 
 def main(argv, Config, methods: dict, train, evaluate) -> int:
-    """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 130 Ctrl-C and 143 SIGTERM
-    (one line saying what was saved). train(cfg, run, snapshot) trains; with --evaluate,
-    evaluate(cfg, run, snapshot) scores the snapshot."""
+    """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 1 a run that diverged (one
+    line), 130 Ctrl-C and 143 SIGTERM (one line saying what was saved). train(cfg, run, snapshot)
+    trains; with --evaluate, evaluate(cfg, run, snapshot) scores the snapshot."""
     with TERM.installed():
         try:
             cfg, run, snapshot = parse_args(argv, Config, methods)
@@ -618,6 +623,9 @@ def main(argv, Config, methods: dict, train, evaluate) -> int:
         except (ConfigError, StorageError) as e:
             print(f"sear.py: error: {e}", file=sys.stderr)
             return 2
+        except NonFinite as e:
+            print(f"sear.py: error: {e}", file=sys.stderr)
+            return 1
         except Interrupted as e:
             print(f"\nsear.py: {e}", file=sys.stderr)
             return e.code

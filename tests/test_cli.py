@@ -165,15 +165,16 @@ def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path, content, r
     assert tree_digest(run_dir) == before
 
 
-def test_interrupt_before_the_first_snapshot_says_there_is_nothing_to_resume(tmp_path):
+def test_interrupt_before_the_first_snapshot_says_there_is_nothing_to_resume_and_leaves_no_folder(tmp_path):
     code, out, err = interrupt_when(["--env", "walker-walk", *LONG_EPISODES], tmp_path, r"\| ep 0 step 3$")
     assert code == 130, err
-    run_dir = only_run_dir(tmp_path)
+    run_dir = re.search(r"^run dir: (.+)$", out, re.M)[1]
     message = err.strip().splitlines()
     assert len(message) == 1 and "Traceback" not in err, err
-    assert re.fullmatch(rf"sear.py: interrupted at frame \d+ \(mid-episode\): {re.escape(str(run_dir))} has no "
-                        r"snapshot yet \(.*\), so there is nothing to resume; start a new run", message[0]), message
-    assert not (run_dir / "snapshot.pt").exists()
+    assert re.fullmatch(r"sear.py: interrupted at frame \d+ \(mid-episode\), before its first snapshot \(the first is "
+                        r"written at the first episode end after 10 minutes\): nothing to resume, so "
+                        + re.escape(run_dir) + " was removed", message[0]), message
+    assert list((tmp_path / "runs").iterdir()) == []
 
 
 def test_interrupt_mid_episode_after_a_snapshot_names_it_and_the_run_dir(tmp_path):
@@ -230,27 +231,17 @@ def test_snapshots_follow_their_own_clock_and_the_budget_ends_with_an_evaluation
     assert counters["step"] == 20 and counters["mid_episode"] and counters["last_eval_frame"] == 40
 
 
-def test_evaluation_shows_which_episode_it_is_on(tmp_path):
+def test_evaluation_shows_which_episode_it_is_on_and_that_frame_0_scores_the_untrained_policy(tmp_path):
     r = run(["--env", "walker-walk", *TINY, "--frames", "16", "--eval-episodes", "2", "--log-every", "0"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    evals = [line.split(" | ")[-1] for line in r.stdout.splitlines() if " | eval " in line]
+    lines = [line for line in r.stdout.splitlines() if " | eval " in line]
+    evals = [re.sub(r", ends in ~\S+( \S+)?$", "", line.split(" | ")[-1]) for line in lines]
     # Two evaluations (frame 0 and the final one at frame 16), each 2 episodes x 8 steps.
-    assert evals == [f"eval {i}/2 step {t}" for i in (1, 2) for t in range(1, 9)] * 2, r.stdout
-
-
-def test_progress_speed_and_eta_count_training_and_evaluations_apart(capsys):
-    import experiment
-    p = experiment.Progress(total=1000, every=0, eval_every=100)
-    p.fps = 10.0
-    assert p.eta(500, next_eval=600) == float("inf")  # no evaluation timed yet
-    assert p.eta(500, next_eval=600, eval_done=0.5, eval_spent=2.0) == 50 + (4 + 1 - 0.5) * 4.0
-    p.eval_seconds = [5.0]
-    assert p.eta(500, next_eval=600) == 500 / 10 + (4 + 1) * 5  # 600, 700, 800, 900 and the final one
-    assert p.eta(1000, next_eval=1000) == 5.0  # only the final evaluation is left
-    p.tty = True
-    p.update(500, "eval 3/10 step 7", 75.0)
-    out = capsys.readouterr().out
-    assert out.startswith("\rframe 500/1000 (50.0%) | 10.0 fps | ETA 00:01:15 | eval 3/10 step 7") and "\n" not in out
+    assert evals == ([f"eval {i}/2 step {t} (the untrained policy)" for i in (1, 2) for t in range(1, 9)]
+                     + [f"eval {i}/2 step {t}" for i in (1, 2) for t in range(1, 9)]), r.stdout
+    assert all(", ends in ~" in line for line in lines[8:16]) and ", ends in" not in lines[0]  # once one is timed
+    assert all("| ETA measuring |" in line for line in lines[:16])  # nothing trained yet: no speed to go by
+    assert "evaluating at frame 0 (2 episodes): the untrained policy, before any update" in r.stdout
 
 
 def test_help_shows_per_task_defaults_as_such():
