@@ -648,25 +648,66 @@ class TermSignal:
     trains (`defer`, set by experiment.RunDir), the first SIGTERM only asks it to stop there: before
     the run directory is made, or at the next episode end, where a snapshot holds the exact state
     (SLURM's --signal=TERM@SECONDS gives that grace before the time limit). Anywhere else (reading
-    flags, --evaluate), or a second time, it stops at once. Exit code 143 (128 + 15)."""
+    flags, --evaluate), or a second time, it stops at once. Exit code 143 (128 + 15).
+
+    Python runs a signal handler in the main thread only, between bytecodes: while that thread is
+    inside one long native call (a torch operation, a render) the handler waits for the call to
+    end, and a SIGTERM seems ignored. So a watcher thread hears every SIGTERM too (set_wakeup_fd:
+    the interpreter's C-level handler writes the signal's number into a pipe at once), and when one
+    that stops at once has not ended the process GRACE seconds later, it ends it: one line saying
+    what stands (`stands`, set by experiment.RunDir), exit 143, no Python code of the main thread."""
+
+    GRACE = 5.0
 
     def __init__(self):
         self.defer, self.pending = False, False
+        self.received = 0  # SIGTERMs the watcher heard: the handler sees two that came during one call as one
+        self.stands = None  # () -> what a forced stop leaves, e.g. "the last snapshot (frame N) stands; ..."
 
     @contextlib.contextmanager
     def installed(self):
-        """The handler for the time of a command (main), then the one before it again."""
+        """The handler and its watcher for the time of a command (main), then the handler before it again."""
         if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
             yield
             return
+        self.received = 0
         previous = signal.signal(signal.SIGTERM, self.handle)
+        read, write = os.pipe()
+        os.set_blocking(write, False)  # set_wakeup_fd's rule: a signal handler never blocks
+        previous_fd = signal.set_wakeup_fd(write)
+        done = threading.Event()
+        threading.Thread(target=self.watch, args=(read, done), daemon=True, name="sigterm-watcher").start()
         try:
             yield
         finally:
+            done.set()
+            signal.set_wakeup_fd(previous_fd)
             signal.signal(signal.SIGTERM, previous)
+            os.close(write)  # the watcher reads the end of the pipe and closes its side
+
+    def watch(self, fd, done: threading.Event):
+        try:
+            while data := os.read(fd, 64):  # blocks without the GIL
+                for signum in data:
+                    if signum != signal.SIGTERM:
+                        continue
+                    self.received += 1
+                    if (self.received > 1 or not self.defer) and not done.wait(self.GRACE):
+                        self.force_stop()
+        finally:
+            os.close(fd)
+
+    def force_stop(self):
+        try:
+            stands = self.stands() if self.stands else "nothing was saved"
+        except Exception:  # the last words must not fail
+            stands = "the last snapshot, if any, stands"
+        os.write(2, f"\nsear.py: stopped by SIGTERM at once: the process did not answer it within {self.GRACE:g} s "
+                    f"(inside a long native call); {stands}\n".encode())
+        os._exit(128 + signal.SIGTERM)
 
     def handle(self, signum, frame):
-        if self.defer and not self.pending:
+        if self.defer and not self.pending and self.received <= 1:
             self.pending = True
             # os.write: print() here could re-enter a write the signal interrupted
             os.write(2, b"\nsear.py: SIGTERM: stopping at the next safe point (an episode end, with a snapshot); "
@@ -719,15 +760,25 @@ def default_threads():
     return usable_cores()
 
 
+def torch_threads(run: RunConfig) -> int:
+    """--threads, else $OMP_NUM_THREADS, else every usable core; never more than the usable cores.
+    Clamped, not refused: more threads than cores cannot be faster, and torch's OpenMP threads then
+    spin waiting for each other (64 on 2 cores: one nn.init.orthogonal_ of SEAR's encoder ran for
+    minutes instead of 6 s), while an OMP_NUM_THREADS that a cluster or a sweep set for other jobs
+    should not stop a run (start_warnings says it was clamped)."""
+    return min(run.threads or default_threads(), usable_cores())
+
+
 def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
-    """Settings that run, but not as meant: more threads than cores, a replay smaller than a batch or
-    than the seed phase (learning starts once the replay holds the seed frames' steps). After the
-    envs are made: the seed phase's steps need the suite's action repeat."""
+    """Settings that run, but not as meant: more threads than cores (clamped), a replay smaller than a
+    batch or than the seed phase (learning starts once the replay holds the seed frames' steps). After
+    the envs are made: the seed phase's steps need the suite's action repeat."""
     warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
     if threads > cores:
         given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
-        warnings.append(f"{given} is more threads than the {cores} cores this process may use: torch's threads "
-                        f"then wait on each other and every update is slower; use at most {cores}")
+        warnings.append(f"{given} is more threads than the {cores} cores this process may use; using {cores} "
+                        f"(more would only wait on each other: torch's threads spin, and on 2 cores 64 of them "
+                        f"took minutes for one operation)")
     if training and cfg.replay_size < cfg.batch_size:
         warnings.append(f"--replay-size {cfg.replay_size} is smaller than --batch-size {cfg.batch_size}: every "
                         f"batch holds the same transitions several times")
@@ -750,5 +801,5 @@ def torch_setup(run: RunConfig):
             raise ConfigError(f"--device: unknown device '{run.device}'")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
-    torch.set_num_threads(run.threads or default_threads())
+    torch.set_num_threads(torch_threads(run))
     return device
