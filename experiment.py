@@ -809,6 +809,7 @@ class Health:
 
     COLLAPSE_WINDOW, SATURATED, SPREAD = 500, 0.99, 1e-3
     DIVERGE_WINDOW, DIVERGE_FACTOR = 100, 2.0
+    EVERY = 10  # the windows are looked at every 10th update: ~10 us an update, not ~100
 
     def __init__(self, discount: float):
         self.discount, self.updates, self.reward_scale = discount, 0, 1.0
@@ -836,6 +837,8 @@ class Health:
             self.spread.append(metrics["action_spread"])
         if "q" in metrics:
             self.q.append(abs(metrics["q"]))
+        if self.updates % self.EVERY:
+            return []
         fired = [(kind, message) for kind, check in (("actor collapsed", self.collapsed),
                                                      ("critic diverging", self.diverging))
                  if kind not in self.warned and (message := check())]
