@@ -15,6 +15,7 @@ import dataclasses
 import difflib
 import errno
 import json
+import math
 import os
 import signal
 import socket
@@ -143,6 +144,11 @@ def write_atomically(path, write, mode="wb"):
             os.remove(tmp)
 
 
+class NonFinite(Exception):
+    """A loss, Q or action that is no longer a finite number: the run diverged. It stops (exit 1) in
+    one line that says where and what stands (experiment.RunDir adds the frame and the snapshot)."""
+
+
 class Interrupted(Exception):
     """Ctrl-C or SIGTERM during training; the message says what was saved and how to continue."""
 
@@ -228,6 +234,16 @@ TASK_DEFAULTS = (
     ("drm_max_perturb", lambda cfg: cfg.drm and cfg.env in DRM_MAX_PERTURB, lambda cfg: DRM_MAX_PERTURB[cfg.env],
      "DrM's cfgs/task/<task>.yaml: agent.max_perturb_factor"),
 )
+
+# What --help says of the rows above: a field's default there is the value where no row applies.
+TASK_DEFAULTS_HELP = {
+    "latent_dim": "512 on the task sets (metaworld-mt3, -mt10, -mt50)",
+    "std_steps": "2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 (easy), 500000 (medium, and "
+                 "every task not in its table), 2000000 (hard: humanoid)",
+    "recon_coef": "1.0 with --method dear", "mask_coef": "0.25 with --method dear",
+    "drm_max_perturb": "0.9 or 0.6 on the tasks in cli.DRM_MAX_PERTURB",
+}
+
 # --drm's shrink factor where DrM's task cfgs (github.com/XuGW-Kevin/DrM, cfgs/task) set it below the
 # 1.0 of their medium tasks (acrobot_swingup, cheetah_run, hopper_hop, quadruped, reacher, walker_run, ...).
 DRM_MAX_PERTURB = {"acrobot-swingup_sparse": 0.9, "manipulator-bring_ball": 0.9, "humanoid-stand": 0.9,
@@ -290,8 +306,9 @@ def build_parser(Config, methods: dict) -> OneLineParser:
     for title, defaults, fields in field_groups(Config):
         group = parser.add_argument_group(title)
         for f in fields:
-            # argparse formats help with %: a doc's "0.8%" must reach it as "0.8%%"
-            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r})".replace("%", "%%")
+            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r}"
+            help_text += f"; per task: {TASK_DEFAULTS_HELP[f.name]})" if f.name in TASK_DEFAULTS_HELP else ")"
+            help_text = help_text.replace("%", "%%")  # argparse formats help with %: "0.8%" must reach it as "0.8%%"
             choices = f.metadata.get("choices")
             if f.name == "method":  # the METHODS table documents itself
                 help_text = "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
@@ -304,6 +321,23 @@ def build_parser(Config, methods: dict) -> OneLineParser:
                 group.add_argument(flag(f.name), type=typ, default=argparse.SUPPRESS, help=help_text,
                                    choices=choices)
     return parser
+
+
+def negative_numbers_as_values(argv: list[str]) -> list[str]:
+    """'--lr -1e-4' as '--lr=-1e-4': argparse's rule for negative numbers knows -1 and -1.5 but not
+    -1e-4, takes it for a flag and says 'expected one argument' instead of what is wrong with it."""
+    joined = []
+    for token in argv:
+        if joined and joined[-1].startswith("--") and "=" not in joined[-1] and token.startswith("-"):
+            try:
+                float(token)
+            except ValueError:
+                pass
+            else:
+                joined[-1] += "=" + token
+                continue
+        joined.append(token)
+    return joined
 
 
 def flag_names(Config) -> set[str]:
@@ -332,8 +366,8 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
                               "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
-                              "eval_every", "mae_patch", "drm_perturb_every")),
-    (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps", "lr",
+                              "eval_every", "mae_patch", "drm_perturb_every", "lr")),
+    (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps",
                                 "recon_coef", "mask_coef", "ae_latent_lambda", "curl_lr", "std_end", "std_clip",
                                 "eval_episodes_per_task", "snapshot_minutes", "threads", "drm_dormant_temp",
                                 "drm_lambda_temp", "drm_perturb_rate")),
@@ -345,7 +379,12 @@ RANGES = (
 
 
 def validate(cfg, run: RunConfig, methods: dict) -> None:
-    """What the parser's types and choices cannot see: ranges and the rules between fields."""
+    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields."""
+    for settings in (cfg, run):
+        for f in dataclasses.fields(settings):
+            value = getattr(settings, f.name)
+            if isinstance(value, float) and not math.isfinite(value):  # inf passes every range, NaN none
+                raise ConfigError(f"{flag(f.name)} must be a finite number, got {value}")
     for rule, holds, names in RANGES:
         for name in names:
             value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
@@ -422,7 +461,13 @@ def load_snapshot(run_dir, flag="--resume", mmap=False):
         return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as e:  # corrupt or foreign file: say so in one line
         reason = first_sentence(e)
-        raise ConfigError(f"{flag}cannot read '{path}': {type(e).__name__}" + (f": {reason}" if reason else ""))
+        what = f"{type(e).__name__}" + (f": {reason}" if reason else "")
+        if isinstance(e, EOFError) or "failed finding central directory" in str(e):  # a zip without its end
+            raise ConfigError(f"{flag}'{path}' is cut short ({what.rstrip('.')}): sear.py writes a snapshot whole or "
+                              f"not at all, so this is a copy or move that did not finish; copy snapshot.pt again "
+                              f"from the run's original folder, where its last snapshot stands (this folder keeps "
+                              f"no other)") from None
+        raise ConfigError(f"{flag}cannot read '{path}': {what}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -586,6 +631,7 @@ def parse_args(argv, Config, methods: dict) -> tuple:
     """(Config, RunConfig, snapshot) from the flags; with --resume or --evaluate, the run's saved
     config (plus the few flags that may change) and its snapshot, else snapshot None."""
     parser = build_parser(Config, methods)
+    argv = negative_numbers_as_values(sys.argv[1:] if argv is None else list(argv))
     namespace, extras = parser.parse_known_args(argv)
     if extras:
         parser.error(unknown_arguments(extras, flag_names(Config)))
@@ -620,9 +666,9 @@ def parse_args(argv, Config, methods: dict) -> tuple:
 
 
 def main(argv, Config, methods: dict, train, evaluate) -> int:
-    """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 130 Ctrl-C and 143 SIGTERM
-    (one line saying what was saved). train(cfg, run, snapshot) trains; with --evaluate,
-    evaluate(cfg, run, snapshot) scores the snapshot."""
+    """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 1 a run that diverged (one
+    line), 130 Ctrl-C and 143 SIGTERM (one line saying what was saved). train(cfg, run, snapshot)
+    trains; with --evaluate, evaluate(cfg, run, snapshot) scores the snapshot."""
     with TERM.installed():
         try:
             cfg, run, snapshot = parse_args(argv, Config, methods)
@@ -630,6 +676,9 @@ def main(argv, Config, methods: dict, train, evaluate) -> int:
         except (ConfigError, StorageError) as e:
             print(f"sear.py: error: {e}", file=sys.stderr)
             return 2
+        except NonFinite as e:
+            print(f"sear.py: error: {e}", file=sys.stderr)
+            return 1
         except Interrupted as e:
             print(f"\nsear.py: {e}", file=sys.stderr)
             return e.code
@@ -652,25 +701,66 @@ class TermSignal:
     trains (`defer`, set by experiment.RunDir), the first SIGTERM only asks it to stop there: before
     the run directory is made, or at the next episode end, where a snapshot holds the exact state
     (SLURM's --signal=TERM@SECONDS gives that grace before the time limit). Anywhere else (reading
-    flags, --evaluate), or a second time, it stops at once. Exit code 143 (128 + 15)."""
+    flags, --evaluate), or a second time, it stops at once. Exit code 143 (128 + 15).
+
+    Python runs a signal handler in the main thread only, between bytecodes: while that thread is
+    inside one long native call (a torch operation, a render) the handler waits for the call to
+    end, and a SIGTERM seems ignored. So a watcher thread hears every SIGTERM too (set_wakeup_fd:
+    the interpreter's C-level handler writes the signal's number into a pipe at once), and when one
+    that stops at once has not ended the process GRACE seconds later, it ends it: one line saying
+    what stands (`stands`, set by experiment.RunDir), exit 143, no Python code of the main thread."""
+
+    GRACE = 5.0
 
     def __init__(self):
         self.defer, self.pending = False, False
+        self.received = 0  # SIGTERMs the watcher heard: the handler sees two that came during one call as one
+        self.stands = None  # () -> what a forced stop leaves, e.g. "the last snapshot (frame N) stands; ..."
 
     @contextlib.contextmanager
     def installed(self):
-        """The handler for the time of a command (main), then the one before it again."""
+        """The handler and its watcher for the time of a command (main), then the handler before it again."""
         if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
             yield
             return
+        self.received = 0
         previous = signal.signal(signal.SIGTERM, self.handle)
+        read, write = os.pipe()
+        os.set_blocking(write, False)  # set_wakeup_fd's rule: a signal handler never blocks
+        previous_fd = signal.set_wakeup_fd(write)
+        done = threading.Event()
+        threading.Thread(target=self.watch, args=(read, done), daemon=True, name="sigterm-watcher").start()
         try:
             yield
         finally:
+            done.set()
+            signal.set_wakeup_fd(previous_fd)
             signal.signal(signal.SIGTERM, previous)
+            os.close(write)  # the watcher reads the end of the pipe and closes its side
+
+    def watch(self, fd, done: threading.Event):
+        try:
+            while data := os.read(fd, 64):  # blocks without the GIL
+                for signum in data:
+                    if signum != signal.SIGTERM:
+                        continue
+                    self.received += 1
+                    if (self.received > 1 or not self.defer) and not done.wait(self.GRACE):
+                        self.force_stop()
+        finally:
+            os.close(fd)
+
+    def force_stop(self):
+        try:
+            stands = self.stands() if self.stands else "nothing was saved"
+        except Exception:  # the last words must not fail
+            stands = "the last snapshot, if any, stands"
+        os.write(2, f"\nsear.py: stopped by SIGTERM at once: the process did not answer it within {self.GRACE:g} s "
+                    f"(inside a long native call); {stands}\n".encode())
+        os._exit(128 + signal.SIGTERM)
 
     def handle(self, signum, frame):
-        if self.defer and not self.pending:
+        if self.defer and not self.pending and self.received <= 1:
             self.pending = True
             # os.write: print() here could re-enter a write the signal interrupted
             os.write(2, b"\nsear.py: SIGTERM: stopping at the next safe point (an episode end, with a snapshot); "
@@ -723,16 +813,26 @@ def default_threads():
     return usable_cores()
 
 
+def torch_threads(run: RunConfig) -> int:
+    """--threads, else $OMP_NUM_THREADS, else every usable core; never more than the usable cores.
+    Clamped, not refused: more threads than cores cannot be faster, and torch's OpenMP threads then
+    spin waiting for each other (64 on 2 cores: one nn.init.orthogonal_ of SEAR's encoder ran for
+    minutes instead of 6 s), while an OMP_NUM_THREADS that a cluster or a sweep set for other jobs
+    should not stop a run (start_warnings says it was clamped)."""
+    return min(run.threads or default_threads(), usable_cores())
+
+
 def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
-    """Settings that run, but not as meant: more threads than cores, Distracting Control without the
-    paper's DAVIS backgrounds, a replay smaller than a batch or than the seed phase (learning starts
-    once the replay holds the seed frames' steps). After the envs are made: the seed phase's steps
-    need the suite's action repeat."""
+    """Settings that run, but not as meant: more threads than cores (clamped), Distracting Control without
+    the paper's DAVIS backgrounds, a replay smaller than a batch or than the seed phase (learning starts
+    once the replay holds the seed frames' steps). After the envs are made: the seed phase's steps need
+    the suite's action repeat."""
     warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
     if threads > cores:
         given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
-        warnings.append(f"{given} is more threads than the {cores} cores this process may use: torch's threads "
-                        f"then wait on each other and every update is slower; use at most {cores}")
+        warnings.append(f"{given} is more threads than the {cores} cores this process may use; using {cores} "
+                        f"(more would only wait on each other: torch's threads spin, and on 2 cores 64 of them "
+                        f"took minutes for one operation)")
     if training and cfg.replay_size < cfg.batch_size:
         warnings.append(f"--replay-size {cfg.replay_size} is smaller than --batch-size {cfg.batch_size}: every "
                         f"batch holds the same transitions several times")
@@ -758,5 +858,5 @@ def torch_setup(run: RunConfig):
             raise ConfigError(f"--device: unknown device '{run.device}'")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
-    torch.set_num_threads(run.threads or default_threads())
+    torch.set_num_threads(torch_threads(run))
     return device

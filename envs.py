@@ -219,14 +219,11 @@ def _dmc_name(domain: str, task: str) -> str:
 
 
 def env_names() -> list[str]:
-    """Every registered env name.
-
-    Any dm_control ``<domain>-<task>`` also works with ``-distracting``; only
-    the two headline distracting envs are listed.
-    """
+    """Every registered env name: each dm_control ``<domain>-<task>``, each of them again with
+    ``-distracting`` (the paper's two, walker-walk and cup-catch, first), then the other suites."""
     names = ["walker-walk", "cup-catch"]
     names += [n for n in (_dmc_name(d, t) for d, t in _dmc_tasks()) if n not in names]
-    names += ["walker-walk-distracting", "cup-catch-distracting"]
+    names += [f"{n}-distracting" for n in names]
     names += [f"metaworld-{t}" for t in _metaworld_tasks()]
     names += [f"metaworld-{s}" for s in _METAWORLD_SETS]
     names += [f"kitchen-{t}" for t in _KITCHEN_TASKS]

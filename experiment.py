@@ -1,14 +1,16 @@
 """What sear.py's training loop calls besides the algorithm: the envs a config describes, the run
 directory (config.json, train.csv / eval.csv and TensorBoard, snapshots with the replay buffer beside
 them, resume and its side files, one owner at a time, atomic writes and storage errors in one line,
-what a Ctrl-C or SIGTERM leaves), the progress line, the evaluation's decoder metrics and videos,
---evaluate's scores, the background sampler, and transfer (--init-from).
+what a Ctrl-C or SIGTERM leaves), the progress line and its ETA, the health checks of every update
+(docs/health.md), the evaluation's decoder metrics and videos, --evaluate's scores, the background
+sampler, and transfer (--init-from).
 
 Layering: imports cli.py, and lazily envs.py and segment.py (so that `import sear` needs only torch,
 numpy and the standard library); never sear.py, whose agent, buffer and config it receives as arguments.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import csv
 import dataclasses
@@ -17,12 +19,14 @@ import math
 import os
 import queue
 import random
+import shutil
 import socket
 import sys
 import threading
 import time
 from dataclasses import dataclass
 
+import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -101,12 +105,14 @@ def make_envs(cfg, uses_mask: bool, train=True):
     default. `uses_mask`: the method trains on (or acts on) the robot mask. With a learned mask
     source, obs["mask"] is the model's prediction on each frame (envs.make_env(mask_model=)): the
     train env never renders the simulator's mask, the eval env renders it only for the
-    learned_mask_iou metric (info["true_mask"], which nothing stores or trains on)."""
+    learned_mask_iou metric (info["true_mask"], which nothing stores or trains on). Both refuse
+    actions that are not finite numbers (FiniteActions)."""
     import envs  # imported here so that `--help` and config errors need no MuJoCo
     mask_model = load_mask_model(cfg)
     train_env = make_run_env(cfg, "train", uses_mask and mask_model is None, mask_model) if train else None
     eval_env = make_run_env(cfg, "eval", uses_mask and (mask_model is None or cfg.learned_mask_iou), mask_model)
     cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
+    train_env, eval_env = FiniteActions(train_env) if train else None, FiniteActions(eval_env)
     if measures_learned_iou(cfg):
         import segment
         eval_env = segment.LearnedMaskIoU(eval_env)
@@ -665,6 +671,22 @@ def set_rng_state(state):
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+def size(n: float) -> str:
+    """'3.8 MB', '207 MB', '5.52 GB'."""
+    return f"{n / 1e9:.2f} GB" if n >= 1e9 else f"{n / 1e6:.0f} MB" if n >= 1e7 else f"{n / 1e6:.1f} MB"
+
+
+def snapshot_bytes(agent) -> int:
+    """The size of snapshot.pt at its largest, from the agent's tensors: every network's state and, for
+    each parameter an optimiser trains, Adam's two moments (there from the first update on). RNG
+    states, counters and config add kilobytes."""
+    networks = sum(t.numel() * t.element_size() for part in agent.state_dict().values() if part
+                   for t in part.values() if torch.is_tensor(t))
+    moments = sum(2 * p.numel() * p.element_size() for opt in vars(agent).values()
+                  if isinstance(opt, torch.optim.Optimizer) for group in opt.param_groups for p in group["params"])
+    return networks + moments
+
+
 def save_snapshot(run_dir, payload):
     """Write snapshot.pt atomically: a crash or a full disk mid-write leaves the previous snapshot intact."""
     write_atomically(os.path.join(run_dir, "snapshot.pt"), lambda f: torch_save(payload, f))
@@ -678,9 +700,9 @@ def tensorboard_writer(run_dir):
         return None
 
 
-def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, cause="interrupted"):
+def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, cause="interrupted", removed=False):
     """What is true after a Ctrl-C (or SIGTERM: `cause`): whether a snapshot exists, at which frame,
-    and the command that continues from it."""
+    and the command that continues from it; with none, whether the run directory was `removed`."""
     if run_dir is None:
         return f"{cause} before the run directory was made; nothing was saved"
     head = f"{cause} at frame {frame} ({where})"
@@ -690,42 +712,94 @@ def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, c
     if snapshot_frame is not None:
         return (f"{head}: the last snapshot (frame {snapshot_frame}) stands, the {frame - snapshot_frame} "
                 f"frames after it will be re-run; {resume}")
-    return (f"{head}: {run_dir} has no snapshot yet (the first is written at the first episode end after "
-            f"{snapshot_minutes:g} minutes), so there is nothing to resume; start a new run")
+    first = f"the first is written at the first episode end after {snapshot_minutes:g} minutes"
+    if removed:
+        return f"{head}, before its first snapshot ({first}): nothing to resume, so {run_dir} was removed"
+    return f"{head}: {run_dir} has no snapshot yet ({first}), so there is nothing to resume; start a new run"
 
 
+
+
+def duration(seconds: float) -> str:
+    """'6d 19h', '21h 33m', '12m 05s', '7s'; 'measuring' while unknown (inf)."""
+    if not math.isfinite(seconds):
+        return "measuring"
+    s = max(0, round(seconds))
+    d, s = divmod(s, 86400)
+    h, s = divmod(s, 3600)
+    m, s = divmod(s, 60)
+    return f"{d}d {h}h" if d else f"{h}h {m:02d}m" if h else f"{m}m {s:02d}s" if m else f"{s}s"
 
 
 class Progress:
-    """The live line: frame, training speed, ETA and what the loop is doing (an episode, or which
-    evaluation episode). On a terminal it is rewritten in place (at least once a second); otherwise
-    (CI logs, nohup) a line is printed every `every` seconds.
+    """The live line: frame, speed, ETA, what the loop is doing (an episode, or which evaluation
+    episode) and any health warning. On a terminal it is rewritten in place (at least once a second);
+    otherwise (CI logs, nohup) a line is printed every `every` seconds.
 
-    The speed counts training time only: frames since the last episode end over the seconds since
-    then, less the evaluations and snapshots in between (pause()), so a ten-minute evaluation does
-    not make the run look stalled. Evaluations are timed apart, and the ETA is the sum of the two:
-    frames left / training speed + evaluations left x seconds each."""
+    `fps` is the speed since the last episode end, less the evaluations and snapshots in between
+    (pause()): train.csv's fps. The ETA counts only what it has measured for what it predicts: the
+    frames left at the speed of training WITH updates (the seed phase steps the env alone, many
+    times faster, and says nothing of it), timed from the WARMUP-th update on, plus the evaluations
+    left at their measured length. Until it has both (MEASURE_UPDATES updates over MEASURE_SECONDS,
+    one evaluation or part of one) it says "measuring". A resumed run starts from the speeds its
+    snapshot kept (state()) until it has measured its own. When the learning speed is first measured
+    one line says what the rest of the run costs on this device (cost())."""
 
     WIDTH = 120
+    WARMUP = 2             # the first updates also build the kernels (oneDNN, cuDNN): not timed
+    MEASURE_UPDATES = 10   # the learning speed stands once this many updates after the warm-up ...
+    MEASURE_SECONDS = 5.0  # ... and this many seconds of them are timed
 
-    def __init__(self, total, every, eval_every):
-        self.total, self.eval_every = total, eval_every
+    def __init__(self, total, every, eval_every, saved: dict | None = None, clock=time.time):
+        self.total, self.eval_every, self.clock = total, eval_every, clock
         self.tty = sys.stdout.isatty()
         self.every = min(every, 1.0) if self.tty else every
         self.last = 0.0
-        self.fps = 0.0  # training frames per second
+        self.fps = 0.0  # frames per second since the last episode end
         self.eval_seconds = []  # duration of each evaluation of this process
-        self.window_start, self.window_frame = time.time(), 0
+        self.saved = saved or {}  # the speeds a resumed run's snapshot kept
+        self.updates = 0  # updates of this process (RunDir.log_update)
+        self.learn_frames, self.learn_seconds = 0, 0.0  # timed training with updates, this process
+        self.tick_time, self.tick_frame, self.tick_updates = None, 0, 0
+        self.window_start, self.window_frame = clock(), 0
+        self.flags: list[str] = []  # health warnings, shown at the end of every line
+        self.cost_said = False
 
     def restart_window(self, frame):
-        self.window_start, self.window_frame = time.time(), frame
+        self.window_start, self.window_frame = self.clock(), frame
 
     def pause(self, seconds):
-        """`seconds` spent off training (an evaluation, a snapshot): not counted in the speed."""
+        """`seconds` spent off training (an evaluation, a snapshot): not counted in any speed."""
         self.window_start += seconds
+        if self.tick_time is not None:
+            self.tick_time += seconds
 
     def measure(self, frame):
-        self.fps = (frame - self.window_frame) / max(time.time() - self.window_start, 1e-9)
+        """After every env step: the speeds. A step counts towards the learning speed when the
+        warm-up updates were done before it began."""
+        now = self.clock()
+        if self.tick_time is not None and self.tick_updates >= self.WARMUP:
+            self.learn_frames += frame - self.tick_frame
+            self.learn_seconds += now - self.tick_time
+        self.tick_time, self.tick_frame, self.tick_updates = now, frame, self.updates
+        self.fps = (frame - self.window_frame) / max(now - self.window_start, 1e-9)
+
+    def measured(self) -> bool:
+        return self.updates >= self.WARMUP + self.MEASURE_UPDATES and self.learn_seconds >= self.MEASURE_SECONDS
+
+    def learning_fps(self) -> float | None:
+        """Frames per second of training with updates: this process's once measured, else the saved one."""
+        return self.learn_frames / self.learn_seconds if self.measured() else self.saved.get("learning_fps")
+
+    def eval_length(self, eval_done=0.0, eval_spent=0.0) -> float | None:
+        """Seconds per evaluation: this process's, else the one under way extrapolated, else the saved one."""
+        if self.eval_seconds:
+            return float(np.mean(self.eval_seconds))
+        return eval_spent / eval_done if eval_done > 0 else self.saved.get("eval_seconds")
+
+    def state(self) -> dict:
+        """The speeds a snapshot keeps for the ETA of the next start."""
+        return {"learning_fps": self.learning_fps(), "eval_seconds": self.eval_length()}
 
     def evals_left(self, next_eval):
         """Scheduled evaluations before the end of the budget (the one due now included), plus the
@@ -734,28 +808,129 @@ class Progress:
         return scheduled + 1
 
     def eta(self, frame, next_eval, eval_done=0.0, eval_spent=0.0):
-        """Seconds to the end of the budget, inf while a speed is unknown. While an evaluation runs,
-        `eval_done` is the fraction of its episodes finished and `eval_spent` its seconds so far."""
-        train = (self.total - frame) / self.fps if self.fps > 0 else (0.0 if frame >= self.total else math.inf)
-        per_eval = (float(np.mean(self.eval_seconds)) if self.eval_seconds
-                    else eval_spent / eval_done if eval_done > 0 else None)
+        """Seconds to the end of the budget, inf while a speed it needs is not measured. While an
+        evaluation runs, `eval_done` is the fraction of its episodes finished and `eval_spent` its
+        seconds so far."""
+        fps = self.learning_fps()
+        train = 0.0 if frame >= self.total else (self.total - frame) / fps if fps else math.inf
         evals = self.evals_left(next_eval) - eval_done
+        per_eval = self.eval_length(eval_done, eval_spent)
         return train + (0.0 if evals <= 0 else math.inf if per_eval is None else evals * per_eval)
 
+    def cost(self, frame, next_eval) -> str | None:
+        """Once, when this process has first measured its learning speed: what the rest costs here."""
+        if self.cost_said or not self.measured():
+            return None
+        self.cost_said = True
+        fps, left, evals, per_eval = self.learning_fps(), max(0, self.total - frame), self.evals_left(next_eval), \
+            self.eval_length()
+        line = (f"cost on this device: {fps:.3g} frames/s with updates (timed over {self.updates - self.WARMUP} "
+                f"updates), so the {left:,} frames left take {duration(left / fps)}")
+        evaluations = f"{evals} evaluation{'s' * (evals != 1)}"
+        if per_eval is None:
+            return line + f", plus {evaluations} not timed yet"
+        return (line + f", and the {evaluations} left {duration(evals * per_eval)} ({duration(per_eval)} each): "
+                f"about {duration(left / fps + evals * per_eval)} in all")
+
     def update(self, frame, text, eta, force=False):
-        now = time.time()
+        now = self.clock()
         if not force and now - self.last < self.every:
             return
         self.last = now
-        eta_s = ("?" if not math.isfinite(eta) else f"{eta / 86400:.1f}d" if eta > 86400
-                 else time.strftime("%H:%M:%S", time.gmtime(eta)))
         line = (f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {self.fps:.1f} fps | "
-                f"ETA {eta_s} | {text}")
+                f"ETA {duration(eta)} | {text}" + "".join(f" | {flag}" for flag in self.flags))
         print(("\r" + line.ljust(self.WIDTH)) if self.tty else line, end="" if self.tty else "\n", flush=True)
 
     def say(self, message):
         """A line of its own (evaluation result, snapshot); on a terminal it replaces the live line."""
         print(("\r" + message.ljust(self.WIDTH)) if self.tty else message, flush=True)
+
+
+class Health:
+    """What every update's metrics say (RunDir.log_update), beyond the numbers in train.csv.
+
+    A loss or Q that is not a finite number stops the run (cli.NonFinite), before the next action
+    reaches the simulator; an action that is not finite stops it too (FiniteActions, the last
+    guard). Two warnings, each given once, on the progress line and stderr (docs/health.md, which
+    also says how the thresholds were chosen from the runs of EXPERIMENTS.md):
+    - the actor has collapsed: over the last COLLAPSE_WINDOW updates, on average at least SATURATED
+      of the batch's mean-action entries at exactly +-1 (actor_saturated) and their spread over the
+      batch at most SPREAD (action_spread): one action in every state, at the bound, where tanh
+      passes no gradient;
+    - the critic diverges: the median |Q| of the last DIVERGE_WINDOW updates is more than
+      DIVERGE_FACTOR times the largest return any policy can have, max |reward per agent step| seen
+      / (1 - discount) (rewards of at least 1 per step assumed until larger ones are seen)."""
+
+    COLLAPSE_WINDOW, SATURATED, SPREAD = 500, 0.99, 1e-3
+    DIVERGE_WINDOW, DIVERGE_FACTOR = 100, 2.0
+    EVERY = 10  # the windows are looked at every 10th update: ~10 us an update, not ~100
+
+    def __init__(self, discount: float):
+        self.discount, self.updates, self.reward_scale = discount, 0, 1.0
+        self.saturated = collections.deque(maxlen=self.COLLAPSE_WINDOW)
+        self.spread = collections.deque(maxlen=self.COLLAPSE_WINDOW)
+        self.q = collections.deque(maxlen=self.DIVERGE_WINDOW)
+        self.warned: set[str] = set()
+
+    def see_rewards(self, rewards: np.ndarray):
+        if len(rewards):
+            self.reward_scale = max(self.reward_scale, float(np.abs(rewards).max()))
+
+    def q_bound(self) -> float:
+        return self.reward_scale / (1.0 - self.discount) if self.discount < 1 else math.inf
+
+    def check(self, metrics: dict) -> list[tuple[str, str]]:
+        """One update's metrics: raises cli.NonFinite on a value that is not finite; returns the
+        warnings (short flag, full line) that fire for the first time."""
+        self.updates += 1
+        for name, value in metrics.items():
+            if not math.isfinite(value):
+                raise cli.NonFinite(f"{name} is {value} at update {self.updates} of this process")
+        if "actor_saturated" in metrics:
+            self.saturated.append(metrics["actor_saturated"])
+            self.spread.append(metrics["action_spread"])
+        if "q" in metrics:
+            self.q.append(abs(metrics["q"]))
+        if self.updates % self.EVERY:
+            return []
+        fired = [(kind, message) for kind, check in (("actor collapsed", self.collapsed),
+                                                     ("critic diverging", self.diverging))
+                 if kind not in self.warned and (message := check())]
+        self.warned.update(kind for kind, _ in fired)
+        return fired
+
+    def collapsed(self) -> str | None:
+        if len(self.saturated) < self.COLLAPSE_WINDOW:
+            return None
+        saturated, spread = np.mean(self.saturated), np.mean(self.spread)
+        if saturated < self.SATURATED or spread > self.SPREAD:
+            return None
+        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates {saturated:.1%} of its mean "
+                f"actions sat at exactly +-1 (actor_saturated) and they spread {spread:.2g} over the batch "
+                f"(action_spread): one action in every state, where tanh passes no gradient back. Such runs rarely "
+                f"recover: docs/health.md")
+
+    def diverging(self) -> str | None:
+        median = float(np.median(self.q)) if len(self.q) == self.DIVERGE_WINDOW else 0.0
+        if median <= self.DIVERGE_FACTOR * self.q_bound():
+            return None
+        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is {median:.3g}, more "
+                f"than {self.DIVERGE_FACTOR:g} x the largest return any policy can have here ({self.reward_scale:.3g} "
+                f"per step / (1 - {self.discount:g}) = {self.q_bound():.3g}); the run will not learn (too high a "
+                f"--lr?): docs/health.md")
+
+
+class FiniteActions(gym.Wrapper):
+    """The last guard before the simulator: an action that is not a finite number (an actor whose
+    parameters diverged) stops the run (cli.NonFinite) instead of reaching MuJoCo, where it would end
+    in a PhysicsError traceback. A check of a few floats per step."""
+
+    def step(self, action):
+        finite = np.isfinite(action)
+        if not finite.all():
+            raise cli.NonFinite(f"{int((~finite).sum())} of the {finite.size} entries of the actor's action are not "
+                                f"finite")
+        return self.env.step(action)
 
 
 @dataclass
@@ -783,7 +958,7 @@ class RunDir:
 
     def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
         self.cfg, self.run, self.resumed = cfg, run, snapshot
-        self.path = run.resume or None
+        self.path = run.resume or None  # a new run's is made by create(): removed if it ends before a snapshot
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
         self.counters = None  # the loop's, from start()
         self.metrics = {}  # the updates' metrics of the episode under way
@@ -840,11 +1015,47 @@ class RunDir:
         self.train_log = CsvLog(os.path.join(self.path, "train.csv"))
         self.eval_log = CsvLog(os.path.join(self.path, "eval.csv"))
         self.writer = tensorboard_writer(self.path)
-        self.progress = Progress(cfg.frames, self.run.log_every, cfg.eval_every)
+        self.progress = Progress(cfg.frames, self.run.log_every, cfg.eval_every, (self.resumed or {}).get("progress"))
+        self.health = Health(cfg.discount)
+        self.health.see_rewards(buffer.rewards[:len(buffer)])
         self.start_time = time.time() - wall_time
         self.counters = counters
+        self.check_free_space()
+        self.say_expected_time()
         self.progress.restart_window(self.frame)
         return counters
+
+    def check_free_space(self):
+        """Before any compute is spent: a disk that cannot hold the next snapshot.pt is refused (the
+        run's work would be lost at its first snapshot); one that cannot hold what the run writes at
+        its largest (two snapshot.pt while one replaces the other, and with --save-buffer two
+        buffer.npz of the full replay) is warned of. Says the sizes either way."""
+        snapshot, buffer = snapshot_bytes(self.agent), self.cfg.replay_size * self.buffer.bytes_per_transition
+        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in ("snapshot.pt", "buffer.npz"))
+                      if os.path.exists(p))
+        free = shutil.disk_usage(self.path).free
+        more = 2 * snapshot + (2 * buffer if self.run.save_buffer else 0) - on_disk
+        print(f"disk: snapshot.pt {size(snapshot)}" + (f", buffer.npz up to {size(buffer)}" if self.run.save_buffer
+                                                       else "") + f"; {size(free)} free in {self.path}")
+        if free < snapshot:
+            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run takes "
+                                  f"{size(snapshot)}: free some space, or give --run-root on a larger disk")
+        if free < more:
+            cli.warn(f"{self.path}: {size(free)} free, but this run's files need up to {size(more)} more (two "
+                     f"snapshot.pt of {size(snapshot)} while one replaces the other"
+                     + (f", two buffer.npz of up to {size(buffer)}" if self.run.save_buffer else "")
+                     + "): it will stop on a full disk before its end, its last snapshot standing")
+
+    def say_expected_time(self):
+        p, frame = self.progress, self.frame
+        if p.learning_fps():  # a resumed run: the speeds its snapshot kept
+            print(f"speed when last run: {p.learning_fps():.3g} frames/s with updates"
+                  + (f", {duration(p.eval_length())} per evaluation" if p.eval_length() else "")
+                  + f"; ETA {duration(p.eta(frame, self.next_eval()))} until measured again here")
+        else:
+            print(f"ETA: measuring; the cost of this run is said once its first updates are timed (they start "
+                  f"at frame {max(frame, self.cfg.seed_frames)}"
+                  + (", after the frame-0 evaluation of the untrained policy)" if frame == 0 else ")"))
 
     def restore(self) -> tuple[Counters, float]:
         """The resumed snapshot's weights, RNG states and buffer; rows logged after it go to side
@@ -887,10 +1098,15 @@ class RunDir:
         self.progress.say(f"snapshot at frame {self.frame}")
 
     def save(self):
+        """snapshot.pt (and buffer.npz); never of an agent whose parameters are no longer finite: the
+        last snapshot then stands (a scan of the parameters, ~0.2 s for SEAR's 16M on one CPU thread)."""
+        if self.non_finite_networks():
+            raise cli.NonFinite("the snapshot due now was not written")
         counters = {**dataclasses.asdict(self.counters), "wall_time": time.time() - self.start_time}
         payload = {"config": cli.config_dict(self.cfg, self.run), "agent": self.agent.state_dict(),
                    "rng": rng_state(), "sample_rng": self.sample_rng.bit_generator.state,
-                   "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters}
+                   "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters,
+                   "progress": self.progress.state()}  # the ETA of the next start
         # Buffer first, then snapshot.pt; each write is atomic, and buffer_t tells a resume
         # whether a kill between the two left a buffer newer than the snapshot.
         if self.run.save_buffer:
@@ -913,20 +1129,34 @@ class RunDir:
             except cli.StorageError as e:
                 self.release()
                 raise self.what_stands(e) from None
-        cli.TERM.defer = True
+        cli.TERM.defer, cli.TERM.stands = True, self.what_a_kill_leaves
         return self
 
-    def what_stands(self, error: cli.StorageError) -> cli.StorageError:
+    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
         """A storage error's line, ended with what the run dir holds now and how to go on."""
         if self.path is None:
             return cli.StorageError(f"{error}; no run directory was made")
         if self.snapshot_frame is None:
-            return cli.StorageError(f"{error}; {self.path} has no snapshot yet, so there is nothing to resume")
+            return cli.StorageError(f"{error}; {self.path} " + ("had no snapshot yet and was removed (nothing to "
+                                                                "resume)" if removed else
+                                                                "has no snapshot yet, so there is nothing to resume"))
         return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: fix that, then "
                                 f"python sear.py --resume {self.path}")
 
+    def what_a_kill_leaves(self) -> str:
+        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its watcher
+        thread while the main thread is stuck in a native call): no other cleanup runs."""
+        if self.path is None:
+            return "nothing was saved"
+        if self.snapshot_frame is None:
+            return f"{self.path} " + ("had no snapshot yet and was removed" if self.remove_if_unsaved()
+                                      else "has no snapshot yet, so there is nothing to resume: delete it")
+        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python sear.py --resume "
+                f"{self.path}")
+
     def release(self):
         cli.TERM.defer = cli.TERM.pending = False
+        cli.TERM.stands = None
         if self.lock is not None:
             self.lock.release()
 
@@ -939,39 +1169,91 @@ class RunDir:
     def stopped(self, kind, error):
         """Ctrl-C or SIGTERM: a snapshot where the state is exactly resumable (between episodes; at the
         end of the budget it is what the final snapshot holds anyway), then one line saying what is
-        saved. A storage error: its line says what stands."""
-        if kind is not None and issubclass(kind, cli.StorageError):
-            raise self.what_stands(error) from None
-        if kind is None or not issubclass(kind, KeyboardInterrupt):
+        saved. A storage error: its line says what stands. A value that is not finite (cli.NonFinite):
+        one line with the frame, what it was and what stands. A new run that ends before its first
+        snapshot, however it ends (but for a kill), leaves no run directory: nothing in it resumes."""
+        if kind is None:
             return
         c, frame, failed = self.counters, self.frame, ""
         where = ("starting" if c is None else "end of budget" if frame >= self.cfg.frames
                  else "mid-episode" if c.mid_episode else "between episodes")
-        if where in ("between episodes", "end of budget") and self.snapshot_frame != frame:
+        if (issubclass(kind, KeyboardInterrupt) and where in ("between episodes", "end of budget")
+                and self.snapshot_frame != frame):
             try:
                 self.save()
             except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
                 pass
             except cli.StorageError as e:
                 failed = f" (the snapshot of frame {frame} failed: {e})"
-        cause, code = cli.stop_cause(error)
-        raise cli.Interrupted(interrupt_message(self.path, frame, where, self.snapshot_frame,
-                                                self.run.snapshot_minutes, cause) + failed, code) from None
+            except cli.NonFinite:
+                failed = f" (no snapshot of frame {frame}: parameters no longer finite in {self.non_finite_networks()})"
+        removed = self.remove_if_unsaved()
+        if issubclass(kind, cli.StorageError):
+            raise self.what_stands(error, removed) from None
+        if issubclass(kind, cli.NonFinite):
+            raise cli.NonFinite(self.diverged(error, removed)) from None
+        if issubclass(kind, KeyboardInterrupt):
+            cause, code = cli.stop_cause(error)
+            raise cli.Interrupted(interrupt_message(self.path, frame, where, self.snapshot_frame,
+                                                    self.run.snapshot_minutes, cause, removed) + failed, code) from None
+
+    def remove_if_unsaved(self) -> bool:
+        """A new run's directory without a snapshot: removed (True if it is gone)."""
+        if self.run.resume or self.path is None or self.snapshot_frame is not None:
+            return False
+        shutil.rmtree(self.path, ignore_errors=True)  # the lock file goes too; the lock itself is an open fd
+        return not os.path.exists(self.path)
+
+    def non_finite_networks(self) -> list[str]:
+        """The agent's networks with a parameter that is not a finite number."""
+        agent = getattr(self, "agent", None)
+        nets = {name: getattr(agent, name, None) for name in ("encoder", "actor", "critic", "aux")}
+        return [name for name, net in nets.items()
+                if net is not None and not all(torch.isfinite(p).all() for p in net.parameters())]
+
+    def diverged(self, error: cli.NonFinite, removed: bool) -> str:
+        """The line of a run stopped by a value that is not finite."""
+        nets = self.non_finite_networks()
+        line = (f"the run diverged at frame {self.frame}: {error}"
+                + (f" (parameters no longer finite: {', '.join(nets)})" if nets else "")
+                + "; it stopped before that reached the simulator")
+        if self.snapshot_frame is not None:
+            return (line + f"; the last snapshot (frame {self.snapshot_frame}) stands: python sear.py --resume "
+                    f"{self.path} continues from it (with --save-buffer it replays the same updates): docs/health.md")
+        return (line + f"; {self.path} " + ("had no snapshot yet and was removed" if removed else
+                                            "has no snapshot yet, so there is nothing to resume")
+                + "; start again with other settings (a lower --lr, smaller loss weights): docs/health.md")
 
     # --- logs ---
     def log_update(self, metrics: dict):
+        """An update's metrics: into the episode's means, and through the health checks (a value that
+        is not finite stops the run here, before the next action reaches the simulator)."""
+        self.progress.updates += 1
+        for kind, message in self.health.check(metrics):
+            self.progress.flags.append(f"warning: {kind}")
+            cli.warn(message)
+            if self.writer:
+                self.writer.add_text("health", message, self.frame)
         for k, v in metrics.items():
             self.metrics.setdefault(k, []).append(v)
 
-    def show_step(self, ep_len):
+    def tick(self):
+        """After every env step: the speeds, and once they are measured what the run costs here."""
         self.progress.measure(self.frame)
+        cost = self.progress.cost(self.frame, self.next_eval())
+        if cost:
+            self.progress.say(cost)
+
+    def show_step(self, ep_len):
+        self.tick()
         self.progress.update(self.frame, f"ep {self.counters.episode} step {ep_len}",
                              self.progress.eta(self.frame, self.next_eval()))
 
     def log_episode(self, ep_return, ep_len, ep_success, info):
         """A train.csv row (and TensorBoard scalars) for the episode that just ended."""
-        frame, episode, progress = self.frame, self.counters.episode, self.progress
-        progress.measure(frame)
+        frame, episode, progress, b = self.frame, self.counters.episode, self.progress, self.buffer
+        self.tick()
+        self.health.see_rewards(b.rewards[np.arange(b.t - ep_len, b.t) % b.capacity])  # the episode's rewards
         row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return, "length": ep_len}
         if "success" in info:
             row["success"] = float(ep_success)
@@ -991,20 +1273,30 @@ class RunDir:
         self.metrics = {}
 
     # --- evaluations ---
+    def untrained(self) -> str:
+        """What an evaluation before any update scores ('' once the agent has been updated)."""
+        if self.frame or self.progress.updates:
+            return ""
+        return "the policy copied by --init-from" if self.run.init_from else "the untrained policy"
+
     def start_eval(self, eval_env) -> EvalWatch:
         """The eval env for sear.evaluate(), watched: the decoders' metrics, and the first episode
         filmed with --save-video. Off the training-speed clock until log_eval()."""
         self.eval_began, self.eval_episodes = time.time(), len(eval_tasks(eval_env, self.cfg))
-        self.progress.say(f"evaluating at frame {self.frame} ({self.eval_episodes} episodes)")
+        untrained = self.untrained()
+        self.progress.say(f"evaluating at frame {self.frame} ({self.eval_episodes} episodes)"
+                          + (f": {untrained}, before any update" if untrained else ""))
         video = os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video else None
         self.watch = EvalWatch(self.agent, eval_env, video)
         return self.watch
 
     def show_eval(self, episode, t):
-        """The progress line during an evaluation (sear.evaluate's on_step)."""
-        self.progress.update(self.frame, f"eval {episode + 1}/{self.eval_episodes} step {t}",
-                             self.progress.eta(self.frame, self.next_eval(), episode / self.eval_episodes,
-                                               time.time() - self.eval_began))
+        """The progress line during an evaluation (sear.evaluate's on_step): which episode, of which
+        policy at frame 0, and once an episode is done how long the evaluation has left."""
+        done, spent, untrained = episode / self.eval_episodes, time.time() - self.eval_began, self.untrained()
+        text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
+                + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
+        self.progress.update(self.frame, text, self.progress.eta(self.frame, self.next_eval(), done, spent))
 
     def log_eval(self, episodes):
         """An eval.csv row (and TensorBoard scalars) for sear.evaluate()'s episodes."""

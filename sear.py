@@ -65,14 +65,14 @@ class Config(experiment.EnvConfig, drm.DrMConfig):
     update_every: int = arg(2, "agent steps between updates")
     critic_tau: float = arg(0.01, "Polyak rate of the target critic")
     feature_dim: int = arg(50, "actor/critic trunk width (Linear + LayerNorm + tanh)")
-    latent_dim: int = arg(4096, "encoder latent size (SEAR's pooled encoder); each half is 2048")
+    latent_dim: int = arg(4096, "encoder latent size (SEAR's pooled encoder), split in two halves")
     hidden_dim: int = arg(1024, "actor and critic MLP width")
     std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
     std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
     std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action "
-                                  "repeat); plain dm_control tasks: DrQ-v2's 100k / 500k / 2M by task, task sets 2M")
+                                  "repeat)")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
-    eval_every: int = arg(10_000, "frames between evaluations (and snapshots)")
+    eval_every: int = arg(10_000, "frames between evaluations (snapshots follow --snapshot-minutes)")
     eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
     eval_episodes_per_task: int = arg(0, "task sets (metaworld-mt*): evaluation episodes of every task; "
                                          "0 = ceil(--eval-episodes / number of tasks)")

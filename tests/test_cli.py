@@ -132,6 +132,12 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--mask-downsample", "every-other"], "argument --mask-downsample: invalid choice: 'every-other'"),
     (["--snapshot-minutes", "-1"], "--snapshot-minutes must be >= 0"),
     (["--env", "walker-walk", "--pole-inertia", "2021"], "the 2021 pole inertia only applies to cartpole-* envs"),
+    # Each of these used to start a run (TINY: a short one): inf passes every range, and a run that
+    # cannot learn or ends in a PhysicsError traceback is worse than a refusal.
+    ([*TINY, "--recon-coef", "inf"], "--recon-coef must be a finite number, got inf"),
+    ([*TINY, "--mask-coef", "-inf"], "--mask-coef must be a finite number, got -inf"),
+    ([*TINY, "--lr", "0"], "--lr must be > 0, got 0.0"),
+    ([*TINY, "--lr", "-1e-4"], "--lr must be > 0, got -0.0001"),  # a value, not "expected one argument"
 ])
 def test_bad_input_is_one_line_and_creates_nothing(tmp_path, args, message):
     r = run(args, tmp_path)
@@ -150,7 +156,11 @@ def truncated_torch_file():
 
 @pytest.mark.parametrize("content, reason", [
     (b"this is not a torch file", "UnpicklingError: could not find MARK."),
-    (truncated_torch_file(), "PytorchStreamReader failed reading zip archive: failed finding central directory."),
+    (truncated_torch_file(), "is cut short (RuntimeError: PytorchStreamReader failed reading zip archive: failed "
+                             "finding central directory): sear.py writes a snapshot whole or not at all, so this is a "
+                             "copy or move that did not finish; copy snapshot.pt again from the run's original "
+                             "folder, where its last snapshot stands (this folder keeps no other)"),
+    (b"", "is cut short (EOFError: Ran out of input)"),
 ])
 def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path, content, reason):
     run_dir = tmp_path / "runs" / "walker-walk__sear__1__x"
@@ -160,20 +170,24 @@ def test_unreadable_snapshot_is_reported_and_left_untouched(tmp_path, content, r
     before = tree_digest(run_dir)
     r = run(["--resume", str(run_dir)], tmp_path)
     assert r.returncode != 0
-    assert len(r.stderr.strip().splitlines()) == 1 and "cannot read" in r.stderr, r.stderr
-    assert r.stderr.rstrip().endswith(reason), r.stderr  # whole sentences, never cut mid-word
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+    if content.startswith(b"this"):
+        assert "cannot read" in r.stderr and r.stderr.rstrip().endswith(reason), r.stderr  # whole sentences
+    else:  # cut short: what to do about it
+        assert f"--resume: '{run_dir / 'snapshot.pt'}' {reason}" in r.stderr, r.stderr
     assert tree_digest(run_dir) == before
 
 
-def test_interrupt_before_the_first_snapshot_says_there_is_nothing_to_resume(tmp_path):
+def test_interrupt_before_the_first_snapshot_says_there_is_nothing_to_resume_and_leaves_no_folder(tmp_path):
     code, out, err = interrupt_when(["--env", "walker-walk", *LONG_EPISODES], tmp_path, r"\| ep 0 step 3$")
     assert code == 130, err
-    run_dir = only_run_dir(tmp_path)
+    run_dir = re.search(r"^run dir: (.+)$", out, re.M)[1]
     message = err.strip().splitlines()
     assert len(message) == 1 and "Traceback" not in err, err
-    assert re.fullmatch(rf"sear.py: interrupted at frame \d+ \(mid-episode\): {re.escape(str(run_dir))} has no "
-                        r"snapshot yet \(.*\), so there is nothing to resume; start a new run", message[0]), message
-    assert not (run_dir / "snapshot.pt").exists()
+    assert re.fullmatch(r"sear.py: interrupted at frame \d+ \(mid-episode\), before its first snapshot \(the first is "
+                        r"written at the first episode end after 10 minutes\): nothing to resume, so "
+                        + re.escape(run_dir) + " was removed", message[0]), message
+    assert list((tmp_path / "runs").iterdir()) == []
 
 
 def test_interrupt_mid_episode_after_a_snapshot_names_it_and_the_run_dir(tmp_path):
@@ -230,27 +244,28 @@ def test_snapshots_follow_their_own_clock_and_the_budget_ends_with_an_evaluation
     assert counters["step"] == 20 and counters["mid_episode"] and counters["last_eval_frame"] == 40
 
 
-def test_evaluation_shows_which_episode_it_is_on(tmp_path):
+def test_evaluation_shows_which_episode_it_is_on_and_that_frame_0_scores_the_untrained_policy(tmp_path):
     r = run(["--env", "walker-walk", *TINY, "--frames", "16", "--eval-episodes", "2", "--log-every", "0"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    evals = [line.split(" | ")[-1] for line in r.stdout.splitlines() if " | eval " in line]
+    lines = [line for line in r.stdout.splitlines() if " | eval " in line]
+    evals = [re.sub(r", ends in ~\S+( \S+)?$", "", line.split(" | ")[-1]) for line in lines]
     # Two evaluations (frame 0 and the final one at frame 16), each 2 episodes x 8 steps.
-    assert evals == [f"eval {i}/2 step {t}" for i in (1, 2) for t in range(1, 9)] * 2, r.stdout
+    assert evals == ([f"eval {i}/2 step {t} (the untrained policy)" for i in (1, 2) for t in range(1, 9)]
+                     + [f"eval {i}/2 step {t}" for i in (1, 2) for t in range(1, 9)]), r.stdout
+    assert all(", ends in ~" in line for line in lines[8:16]) and ", ends in" not in lines[0]  # once one is timed
+    assert all("| ETA measuring |" in line for line in lines[:16])  # nothing trained yet: no speed to go by
+    assert "evaluating at frame 0 (2 episodes): the untrained policy, before any update" in r.stdout
 
 
-def test_progress_speed_and_eta_count_training_and_evaluations_apart(capsys):
-    import experiment
-    p = experiment.Progress(total=1000, every=0, eval_every=100)
-    p.fps = 10.0
-    assert p.eta(500, next_eval=600) == float("inf")  # no evaluation timed yet
-    assert p.eta(500, next_eval=600, eval_done=0.5, eval_spent=2.0) == 50 + (4 + 1 - 0.5) * 4.0
-    p.eval_seconds = [5.0]
-    assert p.eta(500, next_eval=600) == 500 / 10 + (4 + 1) * 5  # 600, 700, 800, 900 and the final one
-    assert p.eta(1000, next_eval=1000) == 5.0  # only the final evaluation is left
-    p.tty = True
-    p.update(500, "eval 3/10 step 7", 75.0)
-    out = capsys.readouterr().out
-    assert out.startswith("\rframe 500/1000 (50.0%) | 10.0 fps | ETA 00:01:15 | eval 3/10 step 7") and "\n" not in out
+def test_help_shows_per_task_defaults_as_such():
+    import cli
+    import sear
+    text = " ".join(cli.build_parser(sear.Config, sear.METHODS).format_help().split())
+    assert "(default: 4096; per task: 512 on the task sets (metaworld-mt3, -mt10, -mt50))" in text
+    assert ("(default: 500000; per task: 2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 "
+            "(easy), 500000") in text
+    assert "frames between evaluations (snapshots follow --snapshot-minutes) (default: 10000)" in text
+    assert set(cli.TASK_DEFAULTS_HELP) == {row[0] for row in cli.TASK_DEFAULTS}
 
 
 def test_resume_refuses_to_change_the_experiment(tmp_path):

@@ -128,6 +128,8 @@ def test_env_names_and_action_repeat():
     assert len([n for n in names if n.startswith("metaworld-")]) == 50 + 3   # MT1 tasks, task sets
     assert {"metaworld-mt3", "metaworld-mt10", "metaworld-mt50", "kitchen-multitask"} <= set(names)
     assert "metaworld-hammer" in names and "metaworld-door-open-v3" not in names
+    dmc = [n for n in names if envs._parse_name(n)[0] == "dmc"]  # `envs.py --list` is complete: every
+    assert [n for n in names if n.endswith("-distracting")] == [f"{n}-distracting" for n in dmc]  # one distracting too
     assert envs.default_action_repeat("walker-walk") == 2
     assert envs.default_action_repeat("walker-walk-distracting") == 2
     assert envs.default_action_repeat("cheetah-run-distracting") == 2

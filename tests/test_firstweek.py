@@ -187,6 +187,65 @@ def test_sigterm_stops_at_the_next_episode_end_with_a_snapshot_and_exit_143(tmp_
     assert snapshot_step(run_dir) == 40
 
 
+def test_a_second_sigterm_stops_a_run_inside_one_long_native_call_within_seconds(tmp_path):
+    """Python runs a signal handler between bytecodes only: a run inside one long torch call (here a
+    deliberately long eigvals; --threads 64 on 2 cores sat in nn.init.orthogonal_) ignored both
+    SIGTERMs until the call ended. The second now ends it within cli.TermSignal.GRACE (5 s), in one
+    line, exit 143; the run had no snapshot, so its directory goes."""
+    script = tmp_path / "stuck.py"
+    script.write_text("import sys, torch, sear\n"
+                      "real = sear.Agent.__init__\n"
+                      "def stuck(self, *args):\n"
+                      "    print('busy', flush=True)\n"
+                      "    torch.linalg.eigvals(torch.randn(6000, 6000))  # one call of a minute or more\n"
+                      "    real(self, *args)\n"
+                      "sear.Agent.__init__ = stuck\n"
+                      "sys.exit(sear.main(sys.argv[1:]))\n")
+    p = subprocess.Popen([sys.executable, str(script), "--run-root", str(tmp_path / "runs"), "--env", "walker-walk",
+                          *TINY], cwd=tmp_path, env={**ENV, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        out = []
+        while "busy" not in (line := p.stdout.readline()):
+            assert line, "".join(out)
+            out.append(line)
+        time.sleep(1.0)  # well inside the call
+        p.send_signal(signal.SIGTERM)
+        time.sleep(0.5)
+        p.send_signal(signal.SIGTERM)
+        sent = time.time()
+        _, err = p.communicate(timeout=15)
+        took = time.time() - sent
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 143 and took < 10, (p.returncode, took, err)
+    assert re.fullmatch(r"sear.py: stopped by SIGTERM at once: the process did not answer it within 5 s \(inside a "
+                        r"long native call\); " + re.escape(str(tmp_path / "runs"))
+                        + r"/walker-walk__sear__1__\S+ had no snapshot yet and was removed",
+                        err.strip().splitlines()[-1]), err
+    assert list((tmp_path / "runs").iterdir()) == []
+
+
+@pytest.mark.parametrize("how", ["--threads", "OMP_NUM_THREADS"])
+def test_more_threads_than_cores_are_clamped_with_a_warning_and_the_run_finishes(tmp_path, how):
+    """64 torch threads on 2 cores spun for over ten minutes in Agent.__init__ (nn.init.orthogonal_):
+    clamped to the usable cores, the run goes on, and says so."""
+    import cli
+    cores, n = len(os.sched_getaffinity(0)), max(64, 4 * len(os.sched_getaffinity(0)))
+    assert cli.torch_threads(cli.RunConfig(threads=n)) == cores
+    args = ["--run-root", tmp_path / "runs", "--env", "walker-walk", *TINY[:-2], "--frames", "16"]  # less --threads
+    r = subprocess.run([sys.executable, str(ROOT / "sear.py"), *map(str, args), *(["--threads", str(n)] if how ==
+                                                                                  "--threads" else [])],
+                       capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                       env={**ENV, **({"OMP_NUM_THREADS": str(n)} if how != "--threads" else {})})
+    assert r.returncode == 0, r.stderr[-3000:]
+    given = f"--threads {n}" if how == "--threads" else f"OMP_NUM_THREADS={n}"
+    assert one_line(r).startswith(f"sear.py: warning: {given} is more threads than the {cores} cores this process "
+                                  f"may use; using {cores} "), r.stderr
+
+
 # ------------------------------------------------------------------------------------ storage errors
 @pytest.mark.parametrize("make", ["file", "file above"])
 def test_a_file_where_the_run_root_should_be_is_one_line_before_anything(tmp_path, make):
@@ -226,7 +285,9 @@ def test_a_full_disk_is_one_line_and_the_last_snapshot_stands(tmp_path):
         + f"; echo exit $?; cp -a {disk}/runs {copy}")
     assert re.search(r"^exit 2$", r.stdout, re.M), r.stdout[-2000:] + r.stderr[-3000:]
     run_dir = only_dir(copy)
-    line = one_line(r)
+    warning, line = r.stderr.strip().splitlines()  # the start-up check saw it coming
+    assert warning.startswith(f"sear.py: warning: {disk / 'runs' / run_dir.name}: 6.3 MB free, but this run's files "
+                              f"need up to 7.3 MB more"), warning
     assert line.startswith(f"sear.py: error: cannot write '{disk / 'runs' / run_dir.name / 'snapshot.pt'}': "
                            f"No space left on device (ENOSPC); the last snapshot (frame 32) stands"), line
     assert not list(run_dir.rglob("*.tmp")) and snapshot_step(run_dir) == 16
@@ -407,6 +468,7 @@ def test_oversubscribed_threads_and_a_small_replay_are_warned_at_start(tmp_path)
     assert r.returncode == 0, r.stderr[-3000:]
     warnings = [line for line in r.stderr.splitlines() if line.startswith("sear.py: warning: ")]
     assert len(warnings) == 3, r.stderr
-    assert f"--threads {cores + 1} is more threads than the {cores} cores" in warnings[0]
+    assert f"--threads {cores + 1} is more threads than the {cores} cores this process may use; using {cores}" \
+        in warnings[0]
     assert "--replay-size 5 is smaller than --batch-size 16" in warnings[1]
     assert "--replay-size 5 is smaller than the 6 steps of --seed-frames 12: learning never starts" in warnings[2]
