@@ -26,7 +26,6 @@ import threading
 import time
 from dataclasses import dataclass
 
-import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -112,11 +111,10 @@ def make_envs(cfg, uses_mask: bool, train=True):
     train_env = make_run_env(cfg, "train", uses_mask and mask_model is None, mask_model) if train else None
     eval_env = make_run_env(cfg, "eval", uses_mask and (mask_model is None or cfg.learned_mask_iou), mask_model)
     cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
-    train_env, eval_env = FiniteActions(train_env) if train else None, FiniteActions(eval_env)
     if measures_learned_iou(cfg):
         import segment
         eval_env = segment.LearnedMaskIoU(eval_env)
-    return train_env, eval_env
+    return FiniteActions(train_env) if train else None, FiniteActions(eval_env)
 
 
 def measures_learned_iou(cfg) -> bool:
@@ -920,10 +918,17 @@ class Health:
                 f"--lr?): docs/health.md")
 
 
-class FiniteActions(gym.Wrapper):
+class FiniteActions:
     """The last guard before the simulator: an action that is not a finite number (an actor whose
     parameters diverged) stops the run (cli.NonFinite) instead of reaching MuJoCo, where it would end
-    in a PhysicsError traceback. A check of a few floats per step."""
+    in a PhysicsError traceback. A check of a few floats per step. The outermost wrapper of a run's envs
+    (everything else is the env's), so it needs no gymnasium at import."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
 
     def step(self, action):
         finite = np.isfinite(action)
