@@ -340,7 +340,7 @@ class SearAux(AuxLoss):
         recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)
         mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
         loss = self.c1 * recon_loss + self.c2 * mask_loss
-        return loss, {"recon_loss": recon_loss.item(), "mask_loss": mask_loss.item()}
+        return loss, {"recon_loss": recon_loss.detach(), "mask_loss": mask_loss.detach()}
 
     def decode(self, latent):
         z, z_r = self.decoder_inputs(latent)
@@ -377,7 +377,7 @@ class AEAux(ReconstructionAux):
         recon_loss = reconstruction_loss(self.recon_decoder(latent), obs_aug)
         penalty = 0.5 * latent.pow(2).sum(1).mean()
         loss = self.c1 * recon_loss + self.latent_lambda * penalty
-        return loss, {"recon_loss": recon_loss.item()}
+        return loss, {"recon_loss": recon_loss.detach()}
 
 
 def patch_mask(n, size, patch, ratio, device):
@@ -406,7 +406,7 @@ class MAEAux(ReconstructionAux):
         masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
         pred = self.recon_decoder(encoder(masked))
         recon_loss = reconstruction_loss(pred, obs_aug, weight=hidden)
-        return self.c1 * recon_loss, {"recon_loss": recon_loss.item()}
+        return self.c1 * recon_loss, {"recon_loss": recon_loss.detach()}
 
 
 class CURLAux(AuxLoss):
@@ -434,7 +434,7 @@ class CURLAux(AuxLoss):
             k = self.key_head(self.key_encoder(random_shift(obs)))
         logits = self.logits(q, k)
         curl_loss = F.cross_entropy(logits, torch.arange(len(q), device=q.device))
-        return self.coef * curl_loss, {"curl_loss": curl_loss.item()}
+        return self.coef * curl_loss, {"curl_loss": curl_loss.detach()}
 
     @torch.no_grad()
     def after_update(self, encoder):
@@ -488,9 +488,8 @@ def actor_metrics(actor_loss, mu) -> dict:
     """The failure of short DDPG runs, made visible: actor_saturated is the share of mean-action
     entries where float32's tanh is exactly +-1 (1 - tanh^2 = 0: no gradient brings them back),
     action_spread the std of the mean action over the batch (0: the same action in every state)."""
-    values = torch.stack([actor_loss.detach(), (mu.abs() == 1.0).float().mean(),
-                          mu.std(0, correction=0).mean()]).tolist()  # one device sync, not three
-    return dict(zip(("actor_loss", "actor_saturated", "action_spread"), values))
+    return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).float().mean(),
+            "action_spread": mu.std(0, correction=0).mean()}
 
 
 class Agent:
@@ -576,7 +575,7 @@ class Agent:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
                 aux_loss, metrics = self.aux(self.encoder, latent, batch.obs, obs_aug, mask_aug)
             loss = loss + aux_loss
-        metrics.update(critic_loss=critic_loss.item(), q=q1.mean().item())
+        metrics.update(critic_loss=critic_loss.detach(), q=q1.mean().detach())
         return loss, latent, metrics
 
     def update_critic(self, batch: Batch, step):
@@ -589,20 +588,23 @@ class Agent:
             self.aux.after_update(self.encoder)
         return latent.detach(), metrics
 
+    def actor_loss(self, latent, step):
+        """DDPG's loss, -min(Q1, Q2) of the actor's noisy action; and the mean action, for the logs."""
+        dist = self.actor(latent, linear_std(self.cfg, step))
+        return -torch.min(*self.critic(latent, dist.sample(clip=self.cfg.std_clip))).mean(), dist.mean.detach()
+
     def update_actor(self, latent, step):
         """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
         loss does not train the encoder."""
-        dist = self.actor(latent, linear_std(self.cfg, step))
-        action = dist.sample(clip=self.cfg.std_clip)
         # Nor the critic: the gradient DrQ-v2 computes for it here is discarded by the next critic
         # step; frozen, the backward pass skips those GEMMs.
         self.critic.requires_grad_(False)
-        actor_loss = -torch.min(*self.critic(latent, action)).mean()
+        actor_loss, mu = self.actor_loss(latent, step)
         self.critic.requires_grad_(True)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_opt.step()
-        return actor_metrics(actor_loss, dist.mean.detach())
+        return actor_metrics(actor_loss, mu)
 
     def update(self, batch: Batch, step):
         batch = Batch._make(torch.as_tensor(x, device=self.device).float() for x in batch)
@@ -613,7 +615,7 @@ class Agent:
         with torch.no_grad():  # Polyak averaging of the target critic
             for p, p_t in zip(self.critic.parameters(), self.critic_target.parameters()):
                 p_t.lerp_(p, self.cfg.critic_tau)
-        return metrics
+        return dict(zip(metrics, torch.stack(list(metrics.values())).tolist()))  # the logs' one device sync
 
     def state_dict(self):
         return {"encoder": self.encoder.state_dict(), "actor": self.actor.state_dict(),
