@@ -2,10 +2,9 @@
 algorithm's Config is in sear.py, passed in), the paper and authors recipes, the checks that turn bad
 input into one line on stderr (misspelled flags, run directories given as inputs and who owns one,
 --evaluate's flags) and the start-up warnings, the saved config of --resume, --evaluate and
---init-from, and the process set-up (torch device and threads, glibc's malloc tunables, SIGTERM).
+--init-from, and the process set-up (glibc's malloc, torch device and threads, SIGTERM).
 
-Loads no numpy or torch at import: `python sear.py` restarts itself with the malloc tunables
-(reexec_with_huge_pages) before those load, so the restart costs a bare interpreter.
+Loads no numpy or torch at import: sweep.py and plot.py read flags and configs through it without them.
 """
 from __future__ import annotations
 
@@ -574,6 +573,7 @@ def main(argv, Config, methods: dict, train, evaluate) -> int:
     """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 130 Ctrl-C and 143 SIGTERM
     (one line saying what was saved). train(cfg, run, snapshot) trains; with --evaluate,
     evaluate(cfg, run, snapshot) scores the snapshot."""
+    configure_allocator()
     with TERM.installed():
         try:
             cfg, run, snapshot = parse_args(argv, Config, methods)
@@ -641,23 +641,27 @@ def stop_cause(stop: KeyboardInterrupt) -> tuple[str, int]:
 # ------------------------------------------------------------------------------------------------
 # The process: glibc's malloc, torch's threads and device
 # ------------------------------------------------------------------------------------------------
-# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
-# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
+# glibc's malloc at run time (mallopt): never mmap a block of its own (M_MMAP_MAX 0) and never give
+# freed heap back to the OS (M_TRIM_THRESHOLD -1): the update's large activation buffers are then
 # reused from one update to the next instead of being mapped, faulted in and unmapped each time.
-GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
+M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # <malloc.h>
 
 
-def reexec_with_huge_pages():
-    """On Linux/glibc, restart this process once with the GLIBC_MALLOC tunables above.
-    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) would otherwise be mapped
-    and unmapped by glibc at every update: with 4 KB pages ~1.8M page faults per SEAR update, and
-    still ~60k with huge pages alone (EXPERIMENTS.md, "Update speed"). glibc reads GLIBC_TUNABLES
-    only at start-up, hence the re-exec. Other platforms ignore the variable."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
-        return
-    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
-    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
+def configure_allocator() -> bool:
+    """Set glibc's malloc as above for the rest of this process; False where there is no glibc
+    (other platforms, musl), which then keep their allocator. Why: on CPU the 84x84x32 decoder
+    activations (tens of MB at batch 256) would otherwise be mapped and unmapped by glibc at every
+    update: ~1.8M page faults per SEAR update with 4 KB pages, none once the heap keeps them
+    (docs/speed.md, "Allocator"). Called where a process starts (main): blocks allocated before
+    it keep their mmap."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    return mallopt(M_MMAP_MAX, 0) == 1 and mallopt(M_TRIM_THRESHOLD, -1) == 1
 
 
 def usable_cores():
@@ -707,3 +711,4 @@ def torch_setup(run: RunConfig):
             raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
     torch.set_num_threads(run.threads or default_threads())
     return device
+

@@ -33,8 +33,6 @@ from typing import NamedTuple
 import cli
 from cli import arg
 
-if __name__ == "__main__":  # glibc reads its malloc tunables at start-up: restart with them before torch loads
-    cli.reexec_with_huge_pages()
 
 import numpy as np
 import torch
