@@ -15,6 +15,7 @@ import difflib
 import errno
 import json
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -40,6 +41,11 @@ class RunConfig:
     logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt, all but the
     fields marked saved=False (--evaluate: a command, not a setting of the run)."""
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
+    compile: bool = arg(False, "the update through torch.compile (inductor): both losses, forward and backward, and "
+                               "both Adam steps; equal to eager within rounding. The first updates compile (minutes "
+                               "on a CPU); docs/speed.md has its speed")
+    cuda_graphs: bool = arg(False, "with --compile on CUDA: replay the compiled update as CUDA graphs (torch.compile's "
+                                   "mode reduce-overhead)")
     prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
                                 "background thread while the current update runs", ("auto", "on", "off"))
     threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
@@ -307,6 +313,8 @@ def validate(cfg, run: RunConfig, methods: dict) -> None:
             value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
             if not holds(value):
                 raise ConfigError(f"{flag(name)} must be {rule}, got {value}")
+    if run.cuda_graphs and not run.compile:
+        raise ConfigError("--cuda-graphs needs --compile (it replays the compiled update)")
     if cfg.latent_dim % 2:
         raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
     if 84 % cfg.mae_patch:
@@ -511,7 +519,7 @@ def inherit_from_source(cfg, run: RunConfig, explicit: set, Config) -> set:
 
 
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
-                     "save_video"}
+                     "save_video", "compile", "cuda_graphs"}
 # --evaluate scores the run as it is: only how many episodes, whether to film, and where to compute.
 EVALUATE_MAY_SET = {"evaluate", "eval_episodes", "eval_episodes_per_task", "save_video", "device", "threads"}
 
@@ -709,6 +717,15 @@ def torch_setup(run: RunConfig):
             raise ConfigError(f"--device: unknown device '{run.device}'")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
+    if run.cuda_graphs and device.type != "cuda":
+        raise ConfigError(f"--cuda-graphs needs a CUDA device; this run's is {device}")
+    if run.compile and device.type == "cpu" and not cxx_compiler():
+        raise ConfigError("--compile on the CPU needs a C++ compiler (inductor builds its kernels with one): no "
+                          "g++, c++ or clang++ found; install one or leave --compile off")
     torch.set_num_threads(run.threads or default_threads())
     return device
 
+
+def cxx_compiler() -> str | None:
+    """The C++ compiler inductor's CPU kernels would be built with ($CXX, else the first one found)."""
+    return next(filter(None, map(shutil.which, (os.environ.get("CXX", ""), "g++", "c++", "clang++"))), None)

@@ -798,6 +798,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
         agent = Agent(cfg, action_dim, device)
         if source is not None:  # transfer: start from another run's networks
             experiment.copy_parts(agent, source, run.init_parts)
+        experiment.compile_update(agent, run)  # --compile: the update through torch.compile, else eager
         frame_shape = (3, *train_env.observation_space["pixels"].shape[1:])
         buffer = ReplayBuffer(cfg.replay_size, frame_shape, action_dim, cfg.frame_stack, cfg.nstep, cfg.discount)
         prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # None: sample here
