@@ -371,14 +371,17 @@ def compile_update(agent, run) -> None:
     kernels), the pattern of LeanRL (pytorch-labs/LeanRL); --cuda-graphs adds CUDA graphs (mode
     reduce-overhead). The Agent's methods stay the eager reference (tests/test_compile.py holds the two
     equal); the calls between them (zero_grad, backward, the critic's freeze, Polyak averaging, the logs'
-    one sync) stay eager. Compiling happens at the first updates (each function twice: dynamo compiles
-    for the first step number, then once for any step)."""
+    one sync) stay eager. Compiling happens at the first update."""
     if not run.compile:
         return
     import torch._inductor.config
     # Inductor would draw the shifts and the exploration noise from its own generator; its eager
     # fallbacks draw eager's numbers, so a compiled run samples what an eager one samples.
     torch._inductor.config.fallback_random = True
+    try:  # the agent step (the noise schedule's) varies: compile for any step, not first for one
+        torch.compiler.config.dynamic_sources = "L['step']"
+    except AttributeError:  # an older torch: dynamo compiles once more at the second step
+        pass
     mode = "reduce-overhead" if run.cuda_graphs else None
     agent.joint_loss = torch.compile(agent.joint_loss, mode=mode)
     agent.actor_loss = torch.compile(agent.actor_loss, mode=mode)

@@ -272,21 +272,22 @@ def official_comparison(args):
 def compile_comparison(args):
     """--compare-compile: each method's update eager (the reference), through --compile, and with
     --cuda-graphs on CUDA, and for drq with --official the official update, alternating rounds on the
-    same batch in this process; the compiling (the first two updates: dynamo compiles for the first
-    step number, then once for any) timed apart. A mode that fails is reported and left out."""
-    batch = fake_batch(args.batch_size)
+    same batch in this process; the compiling (the first two updates, at two step numbers) timed
+    apart. A mode that fails is reported and left out."""
+    batch = fake_batch(args.batch_size, args.action_dim)
     graphs = torch.device(args.device).type == "cuda"
     print(f"## Eager vs --compile{' vs --cuda-graphs' if graphs else ''} (batch {args.batch_size}, "
           f"{torch.get_num_threads()} threads on {args.device}, {args.rounds} alternating rounds x {args.updates} "
           f"updates, median; compile time apart); {load()}\n")
-    print("| method | precision | mode | s/update (wall) | CPU s/update | eager / this | compile s |\n|---|---|---|---|---|---|---|")
+    header = ("| method | precision | mode | s/update (wall) | CPU s/update | eager / this | official / this | "
+              "compile s |\n|---|---|---|---|---|---|---|---|")
     for precision in args.precisions:
         for method in args.methods:
-            eager = make_agent(method, precision, args.batch_size, args.device)
-            contenders, compile_s = {"eager": our_update(eager, batch, args.device)}, {}
+            eager = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
+            contenders, compile_s, rows = {"eager": our_update(eager, batch, args.device)}, {}, []
             for mode, run in (("compiled", cli.RunConfig(compile=True)),
                               ("compiled + CUDA graphs", cli.RunConfig(compile=True, cuda_graphs=True)))[:1 + graphs]:
-                agent = make_agent(method, precision, args.batch_size, args.device)
+                agent = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
                 agent.load_state_dict(eager.state_dict())
                 try:
                     experiment.compile_update(agent, run)
@@ -297,14 +298,18 @@ def compile_comparison(args):
                     compile_s[mode] = time.perf_counter() - start
                     contenders[mode] = our_update(agent, batch, args.device)
                 except Exception as e:  # a compiler or graph failure: say it, time the rest
-                    print(f"| {method} | {precision} | {mode} | failed: {cli.first_sentence(e)[:150]} | | | |", flush=True)
+                    rows.append(f"| {method} | {precision} | {mode} | failed: {cli.first_sentence(e)[:150]} | | | | |")
             if args.official and method == "drq" and precision == "fp32":
-                contenders["official DrQ-v2"] = official_update(args, batch)
+                contenders["official DrQ-v2"] = official_update(args, fake_batch(args.batch_size))  # its 6 actions
             costs = {k: median(c) for k, c in alternate(contenders, args.rounds, args.updates).items()}
+            official = costs.get("official DrQ-v2")
             for mode, c in costs.items():
-                print(f"| {method} | {precision} | {mode} | {c.wall:.3f} | {c.cpu:.3f} | "
-                      f"{costs['eager'].wall / c.wall:.2f} | {f'{compile_s[mode]:.0f}' if mode in compile_s else ''} |",
-                      flush=True)
+                rows.append(f"| {method} | {precision} | {mode} | {c.wall:.3f} | {c.cpu:.3f} | "
+                            f"{costs['eager'].wall / c.wall:.2f} | "
+                            f"{f'{official.wall / c.wall:.2f}' if official else ''} | "
+                            f"{f'{compile_s[mode]:.0f}' if mode in compile_s else ''} |")
+            print("\n".join([header, *rows] if header else rows), flush=True)  # after dynamo's warnings, if any
+            header = None
             torch._dynamo.reset()  # dynamo caches per function, over agents: the next method's agents start afresh
     print(f"\n{load('(at the end)')}\n")
 
@@ -318,9 +323,10 @@ class Cost(NamedTuple):
     faults: float
 
 
-def measure(update, updates) -> Cost:
-    """`updates` calls of update(i) after one untimed call."""
-    update(-1)
+def measure(update, updates, warmup=1) -> Cost:
+    """`updates` calls of update(i) after `warmup` untimed ones."""
+    for i in range(warmup):
+        update(-1 - i)
     wall, cpu, faults = time.perf_counter(), time.process_time(), resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for i in range(updates):
         update(i)
@@ -328,12 +334,12 @@ def measure(update, updates) -> Cost:
                 (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / updates)
 
 
-def alternate(contenders: dict, rounds, updates) -> dict:
+def alternate(contenders: dict, rounds, updates, warmup=1) -> dict:
     """Each contender's Costs over `rounds` rounds, the order of the contenders rotating every round."""
     costs, names = {name: [] for name in contenders}, list(contenders)
     for r in range(rounds):
         for name in names[r % len(names):] + names[:r % len(names)]:
-            costs[name].append(measure(contenders[name], updates))
+            costs[name].append(measure(contenders[name], updates, warmup))
     return costs
 
 
@@ -367,7 +373,8 @@ def run_agents(args):
         buffer = sear.ReplayBuffer(n if t == n else cfg.replay_size, (3, 84, 84), action_dim, cfg.frame_stack,
                                    cfg.nstep, cfg.discount)
         experiment.load_buffer(buffer, path)
-        batches, source = [buffer.sample(args.batch_size, rng) for _ in range(args.batches)], f"its buffer.npz ({n} steps)"
+        batches = [buffer.sample(args.batch_size, rng) for _ in range(args.batches)]
+        source = f"its buffer.npz ({n} steps)"
     else:
         batches = [fake_batch(args.batch_size, action_dim, seed=i) for i in range(args.batches)]
         source = "random frames (the run saved no buffer)"
@@ -384,7 +391,7 @@ def snapshot_comparison(args):
           f"{cfg.method}, batch {args.batch_size}, {cfg.precision}, {torch.get_num_threads()} threads, batches from "
           f"{source}; {args.rounds} alternating rounds x {args.updates} updates, median; {load()}\n")
     costs = alternate({k: (lambda i, a=a: a.update(batches[i % len(batches)], step)) for k, a in agents.items()},
-                      args.rounds, args.updates)
+                      args.rounds, args.updates, args.warmup)
     print("| agent | wall s/update | CPU s/update | minor faults/update |\n|---|---|---|---|")
     for name, c in costs.items():
         m = median(c)
@@ -407,7 +414,8 @@ def profile_ops(agents: dict, batch, step, top=15):
         times[name] = {e.key: e.self_cpu_time_total / 1e3 for e in prof.key_averages()}
     a, b = list(times)
     ops = sorted(set(times[a]) | set(times[b]), key=lambda k: -abs(times[a].get(k, 0) - times[b].get(k, 0)))
-    print(f"### One profiled update each: self CPU ms per op, largest differences first\n\n| op | {a} | {b} |\n|---|---|---|")
+    print(f"### One profiled update each: self CPU ms per op, largest differences first\n\n| op | {a} | {b} |\n"
+          "|---|---|---|")
     for op in ops[:top]:
         print(f"| {op} | {times[a].get(op, 0):.1f} | {times[b].get(op, 0):.1f} |")
     print(f"| all ops | {sum(times[a].values()):.1f} | {sum(times[b].values()):.1f} |\n")
@@ -486,7 +494,8 @@ def compare_allocators(args):
     """Each method's update under each of ALLOCATORS, each measurement a fresh process (glibc reads
     GLIBC_TUNABLES only at start-up), alternating rounds."""
     print(f"## glibc's malloc (batch {args.batch_size}, {args.threads or cli.default_threads()} threads, "
-          f"{args.rounds} alternating rounds of a fresh process x {args.updates} updates, median); {load()}\n")
+          f"{args.rounds} alternating rounds of a fresh process x {args.updates} updates after {args.warmup}, "
+          f"median); {load()}\n")
     print("| method | allocator | wall s/update | CPU s/update | minor faults/update | wall / mallopt's |\n"
           "|---|---|---|---|---|---|")
     for m in args.methods:
@@ -495,7 +504,8 @@ def compare_allocators(args):
             env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
             out = subprocess.run([sys.executable, os.path.abspath(__file__), "--batch-size", str(args.batch_size),
                                   "--updates", str(args.updates), "--methods", m, "--device", args.device,
-                                  "--threads", str(args.threads), "--allocator", allocator, "--updates-only"],
+                                  "--threads", str(args.threads), "--allocator", allocator, "--warmup",
+                                  str(args.warmup), "--updates-only"],
                                  env={**env, **({"GLIBC_TUNABLES": tunables} if tunables else {})},
                                  capture_output=True, text=True, check=True).stdout
             return Cost(*map(float, out.split()))
@@ -507,7 +517,8 @@ def compare_allocators(args):
         ref = median(costs[list(ALLOCATORS)[-1]])
         for name, c in costs.items():
             c = median(c)
-            print(f"| {m} | {name} | {c.wall:.3f} | {c.cpu:.3f} | {c.faults:.0f} | {c.wall / ref.wall:.2f} |", flush=True)
+            print(f"| {m} | {name} | {c.wall:.3f} | {c.cpu:.3f} | {c.faults:.0f} | {c.wall / ref.wall:.2f} |",
+                  flush=True)
     print(f"\n{load('(at the end)')}\n")
 
 
@@ -515,6 +526,8 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--updates", type=int, default=3, help="timed updates per measurement")
+    p.add_argument("--warmup", type=int, default=1, help="untimed updates before each measurement of the "
+                   "comparisons (--compare-allocators: the heap of a fresh process grows for the first 3)")
     p.add_argument("--methods", nargs="+", default=["drq", "sear"], choices=list(sear.METHODS))
     p.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -535,6 +548,8 @@ def main():
     p.add_argument("--compare-compile", action="store_true",
                    help="time each method eager, with --compile (and --cuda-graphs on CUDA), and the official "
                         "update with --official, alternating; compile time apart")
+    p.add_argument("--action-dim", type=int, default=6, help="--compare-compile: the agents' action size (the "
+                   "compiled graphs are then those of a task with as many; cartpole 1, walker 6)")
     p.add_argument("--snapshot", metavar="RUN_DIR",
                    help="time the run's trained agent against a fresh one on batches of its own buffer, alternating")
     p.add_argument("--batches", type=int, default=4, help="--snapshot: batches drawn from the run's buffer")
@@ -559,7 +574,7 @@ def main():
     if args.updates_only:  # one method: the child process of --compare-allocators prints its Cost
         agent = make_agent(args.methods[0], "fp32", args.batch_size, args.device)
         batch = fake_batch(args.batch_size)
-        print(*measure(lambda i: agent.update(batch, step=5_000), args.updates))
+        print(*measure(lambda i: agent.update(batch, step=5_000), args.updates, args.warmup))
         return
 
     peaks = {"fp32": gemm_gflops(torch.float32, args.device), "bf16": gemm_gflops(torch.bfloat16, args.device)}

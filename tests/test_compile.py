@@ -86,7 +86,9 @@ def test_compiled_run_resumes_exactly(tmp_path):
 
 def test_cuda_graphs_need_compile_and_cuda(tmp_path):
     r = run(["--env", "walker-walk", "--cuda-graphs", *TINY], tmp_path)
-    assert r.returncode == 2 and r.stderr.strip() == "sear.py: error: --cuda-graphs needs --compile (it replays the compiled update)"
+    assert r.returncode == 2
+    assert r.stderr.strip() == "sear.py: error: --cuda-graphs needs --compile (it replays the compiled update)"
     r = run(["--env", "walker-walk", "--compile", "--cuda-graphs", "--device", "cpu", *TINY], tmp_path)
-    assert r.returncode == 2 and r.stderr.strip() == "sear.py: error: --cuda-graphs needs a CUDA device; this run's is cpu"
+    assert r.returncode == 2
+    assert r.stderr.strip() == "sear.py: error: --cuda-graphs needs a CUDA device; this run's is cpu"
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
