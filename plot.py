@@ -197,7 +197,7 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
 # Config values that do not change what a run learns (sear.py's RESUME_MAY_CHANGE: device, budget,
 # logging), plus the seed and where the run lives: runs that differ only in these are seeds of one line.
 NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
-                 "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate"}
+                 "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate", "compile", "cuda_graphs"}
 
 
 def split_by_config(label: str, group: list[dict], keys: list[str]) -> dict[str, list[dict]]:
