@@ -16,6 +16,7 @@ Synthetic batches (no rendering) for the update table, so those are the learner'
 are wall clock at the thread count shown; on a shared machine, compare ratios taken in the same run.
 """
 import argparse
+import copy
 import functools
 import os
 import resource
@@ -352,18 +353,20 @@ def load(note=""):
 
 
 def run_agents(args):
-    """The trained agent of --snapshot RUN_DIR (its snapshot.pt: weights and both Adams' state), a fresh
-    agent of the same config (seed 0), the batches both see (from the run's buffer.npz when it was saved,
-    else random frames) and the agent step the run stopped at."""
+    """The agents of --snapshot RUN_DIR: its trained agent (snapshot.pt: weights and both Adams' state),
+    loaded as a resume loads it; the same, every tensor of its state copied into memory allocated now
+    (the values without the loaded memory); a fresh agent of the same config (seed 0). And the batches
+    they see (from the run's buffer.npz when it was saved, else random frames) and the run's agent step."""
     snapshot = cli.load_snapshot(args.snapshot, "--snapshot")
     cfg, _ = cli.split_config(snapshot["config"], sear.Config)
     cfg.batch_size = args.batch_size
     action_dim = [v for k, v in snapshot["agent"]["actor"].items() if k.startswith("policy.")][-1].numel()
     device = torch.device(args.device)
-    trained = sear.Agent(cfg, action_dim, device)
-    trained.load_state_dict(snapshot["agent"])  # as a resume does (experiment.RunDir.restore)
+    agents = {name: sear.Agent(cfg, action_dim, device) for name in ("trained", "trained, state copied")}
+    agents["trained"].load_state_dict(snapshot["agent"])  # as a resume does (experiment.RunDir.restore)
+    agents["trained, state copied"].load_state_dict(copy.deepcopy(snapshot["agent"]))
     torch.manual_seed(0)
-    fresh = sear.Agent(cfg, action_dim, device)
+    agents["fresh"] = sear.Agent(cfg, action_dim, device)
     path = os.path.join(args.snapshot, "buffer.npz")
     rng = np.random.default_rng(0)
     if snapshot.get("buffer_saved") and os.path.exists(path):
@@ -378,15 +381,14 @@ def run_agents(args):
     else:
         batches = [fake_batch(args.batch_size, action_dim, seed=i) for i in range(args.batches)]
         source = "random frames (the run saved no buffer)"
-    return trained, fresh, batches, snapshot["counters"]["step"], cfg, source
+    return agents, batches, snapshot["counters"]["step"], cfg, source
 
 
 def snapshot_comparison(args):
     """--snapshot RUN_DIR: the run's trained agent against a fresh one on the same batches, alternating
     rounds; with --profile the ops whose times differ most, with --subnormals where each holds
     subnormal numbers (forward outputs, gradients, weights, Adam's state)."""
-    trained, fresh, batches, step, cfg, source = run_agents(args)
-    agents = {"trained": trained, "fresh": fresh}
+    agents, batches, step, cfg, source = run_agents(args)
     print(f"## Trained agent (snapshot at agent step {step} of {args.snapshot}) vs a fresh one\n\n"
           f"{cfg.method}, batch {args.batch_size}, {cfg.precision}, {torch.get_num_threads()} threads, batches from "
           f"{source}; {args.rounds} alternating rounds x {args.updates} updates, median; {load()}\n")
@@ -399,10 +401,11 @@ def snapshot_comparison(args):
     t, f = median(costs["trained"]), median(costs["fresh"])
     print(f"\ntrained/fresh: wall {t.wall / f.wall:.2f}, CPU {t.cpu / f.cpu:.2f} (per round, CPU: "
           + ", ".join(f"{a.cpu / b.cpu:.2f}" for a, b in zip(costs["trained"], costs["fresh"])) + f"); {load()}\n")
+    pair = {k: agents[k] for k in ("trained", "fresh")}
     if args.profile:
-        profile_ops(agents, batches[0], step)
+        profile_ops(pair, batches[0], step)
     if args.subnormals:
-        subnormal_table(agents, batches[0], step)
+        subnormal_table(pair, batches[0], step)
 
 
 def profile_ops(agents: dict, batch, step, top=15):
