@@ -42,7 +42,7 @@ class RunConfig:
     fields marked saved=False (--evaluate: a command, not a setting of the run)."""
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
     compile: bool = arg(False, "the update through torch.compile (inductor): both losses, forward and backward, and "
-                               "both Adam steps; equal to eager within rounding. The first updates compile (minutes "
+                               "both Adam steps; equal to eager within rounding. The first update compiles (minutes "
                                "on a CPU); docs/speed.md has its speed")
     cuda_graphs: bool = arg(False, "with --compile on CUDA: replay the compiled update as CUDA graphs (torch.compile's "
                                    "mode reduce-overhead)")
