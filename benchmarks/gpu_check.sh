@@ -183,7 +183,10 @@ for mode in $runs; do
   fi
   s=$seconds
   [[ $mode == compile || $mode == graphs ]] && s=$((seconds + compile_seconds))
-  step "train-$mode" 0 $((s / 2)) timeout --preserve-status -s INT -k 60 "$s" python sear.py "${rung[@]}" \
+  least=$((s / 2 + 20))
+  left=$((budget - (SECONDS - start) - 20))  # its Ctrl-C timer ends inside the budget, with time to stop
+  [ $quick = 1 ] || [ $left -ge $s ] || s=$left
+  step "train-$mode" 0 $least timeout --preserve-status -s INT -k 15 "$s" python sear.py "${rung[@]}" \
     $(mode_flags $mode) --run-root "$out/train-$mode"
   [ -d "$out/train-$mode" ] || continue
   python - "$out/train-$mode" "$seed_frames" >> "$summary" <<'EOF'
