@@ -2,10 +2,9 @@
 algorithm's Config is in sear.py, passed in), the paper and authors recipes, the checks that turn bad
 input into one line on stderr (misspelled flags, run directories given as inputs and who owns one,
 --evaluate's flags) and the start-up warnings, the saved config of --resume, --evaluate and
---init-from, and the process set-up (torch device and threads, glibc's malloc tunables, SIGTERM).
+--init-from, and the process set-up (glibc's malloc, torch device and threads, SIGTERM).
 
-Loads no numpy or torch at import: `python sear.py` restarts itself with the malloc tunables
-(reexec_with_huge_pages) before those load, so the restart costs a bare interpreter.
+Loads no numpy or torch at import: sweep.py and plot.py read flags and configs through it without them.
 """
 from __future__ import annotations
 
@@ -17,6 +16,7 @@ import errno
 import json
 import math
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -42,6 +42,11 @@ class RunConfig:
     logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt, all but the
     fields marked saved=False (--evaluate: a command, not a setting of the run)."""
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
+    compile: bool = arg(False, "the update through torch.compile (inductor): both losses, forward and backward, and "
+                               "both Adam steps; equal to eager within rounding. The first update compiles (minutes "
+                               "on a CPU); docs/speed.md has its speed")
+    cuda_graphs: bool = arg(False, "with --compile on CUDA: replay the compiled update as CUDA graphs (torch.compile's "
+                                   "mode reduce-overhead)")
     prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
                                 "background thread while the current update runs", ("auto", "on", "off"))
     threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
@@ -396,6 +401,11 @@ def validate(cfg, run: RunConfig, methods: dict) -> None:
     if cfg.drm_min_perturb > cfg.drm_max_perturb:
         raise ConfigError(f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
                           f"({cfg.drm_max_perturb})")
+    if run.cuda_graphs and not run.compile:
+        raise ConfigError("--cuda-graphs needs --compile (it replays the compiled update)")
+    if run.compile and cfg.drm:
+        raise ConfigError("--compile does not take --drm: DrM sets each update's std and lambda from the actor's "
+                          "dormant ratio in Python, which a compiled update would recompile for")
     if cfg.latent_dim % 2:
         raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
     if 84 % cfg.mae_patch:
@@ -606,7 +616,7 @@ def inherit_from_source(cfg, run: RunConfig, explicit: set, Config) -> set:
 
 
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
-                     "save_video"}
+                     "save_video", "compile", "cuda_graphs"}
 # --evaluate scores the run as it is: only how many episodes, whether to film, and where to compute.
 EVALUATE_MAY_SET = {"evaluate", "eval_episodes", "eval_episodes_per_task", "save_video", "device", "threads"}
 
@@ -669,6 +679,7 @@ def main(argv, Config, methods: dict, train, evaluate) -> int:
     """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 1 a run that diverged (one
     line), 130 Ctrl-C and 143 SIGTERM (one line saying what was saved). train(cfg, run, snapshot)
     trains; with --evaluate, evaluate(cfg, run, snapshot) scores the snapshot."""
+    configure_allocator()
     with TERM.installed():
         try:
             cfg, run, snapshot = parse_args(argv, Config, methods)
@@ -780,23 +791,27 @@ def stop_cause(stop: KeyboardInterrupt) -> tuple[str, int]:
 # ------------------------------------------------------------------------------------------------
 # The process: glibc's malloc, torch's threads and device
 # ------------------------------------------------------------------------------------------------
-# Huge pages for malloc'd blocks; never mmap a block of its own (mmap_max=0) and never give freed
-# heap back to the OS (trim_threshold 64 GiB): the update's large activation buffers are then
+# glibc's malloc at run time (mallopt): never mmap a block of its own (M_MMAP_MAX 0) and never give
+# freed heap back to the OS (M_TRIM_THRESHOLD -1): the update's large activation buffers are then
 # reused from one update to the next instead of being mapped, faulted in and unmapped each time.
-GLIBC_MALLOC = ("glibc.malloc.hugetlb=1", "glibc.malloc.mmap_max=0", f"glibc.malloc.trim_threshold={64 << 30}")
+M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # <malloc.h>
 
 
-def reexec_with_huge_pages():
-    """On Linux/glibc, restart this process once with the GLIBC_MALLOC tunables above.
-    Why: on CPU the 84x84x32 decoder activations (tens of MB at batch 256) would otherwise be mapped
-    and unmapped by glibc at every update: with 4 KB pages ~1.8M page faults per SEAR update, and
-    still ~60k with huge pages alone (EXPERIMENTS.md, "Update speed"). glibc reads GLIBC_TUNABLES
-    only at start-up, hence the re-exec. Other platforms ignore the variable."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    if not sys.platform.startswith("linux") or "glibc.malloc.hugetlb" in tunables:
-        return
-    os.environ["GLIBC_TUNABLES"] = ":".join(filter(None, [tunables, *GLIBC_MALLOC]))
-    os.execv(sys.executable, sys.orig_argv)  # orig_argv keeps interpreter flags such as -u
+def configure_allocator() -> bool:
+    """Set glibc's malloc as above for the rest of this process; False where there is no glibc
+    (other platforms, musl), which then keep their allocator. Why: on CPU the 84x84x32 decoder
+    activations (tens of MB at batch 256) would otherwise be mapped and unmapped by glibc at every
+    update: ~1.8M page faults per SEAR update with 4 KB pages, none once the heap keeps them
+    (docs/speed.md, "Allocator"). Called where a process starts (main): blocks allocated before
+    it keep their mmap."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    return mallopt(M_MMAP_MAX, 0) == 1 and mallopt(M_TRIM_THRESHOLD, -1) == 1
 
 
 def usable_cores():
@@ -858,5 +873,15 @@ def torch_setup(run: RunConfig):
             raise ConfigError(f"--device: unknown device '{run.device}'")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
+    if run.cuda_graphs and device.type != "cuda":
+        raise ConfigError(f"--cuda-graphs needs a CUDA device; this run's is {device}")
+    if run.compile and device.type == "cpu" and not cxx_compiler():
+        raise ConfigError("--compile on the CPU needs a C++ compiler (inductor builds its kernels with one): no "
+                          "g++, c++ or clang++ found; install one or leave --compile off")
     torch.set_num_threads(torch_threads(run))
     return device
+
+
+def cxx_compiler() -> str | None:
+    """The C++ compiler inductor's CPU kernels would be built with ($CXX, else the first one found)."""
+    return next(filter(None, map(shutil.which, (os.environ.get("CXX", ""), "g++", "c++", "clang++"))), None)

@@ -413,6 +413,40 @@ def rate_ci(values) -> str:
 
 
 # ================================================================================================
+# --compile: the update through torch.compile
+# ================================================================================================
+def compile_update(agent, run) -> None:
+    """--compile, in place on this agent: its two loss functions (Eq. 6's joint_loss, forward and, through
+    AOTAutograd, backward; the actor's loss) and both Adam steps through torch.compile (inductor's fused
+    kernels), the pattern of LeanRL (pytorch-labs/LeanRL); --cuda-graphs adds CUDA graphs (mode
+    reduce-overhead). The Agent's methods stay the eager reference (tests/test_compile.py holds the two
+    equal); the calls between them (zero_grad, backward, the critic's freeze, Polyak averaging, the logs'
+    one sync) stay eager. Compiling happens at the first update."""
+    if not run.compile:
+        return
+    import torch._inductor.config
+    # Inductor would draw the shifts and the exploration noise from its own generator; its eager
+    # fallbacks draw eager's numbers, so a compiled run samples what an eager one samples.
+    torch._inductor.config.fallback_random = True
+    try:  # the agent step (the noise schedule's) varies: compile for any step, not first for one
+        torch.compiler.config.dynamic_sources = "L['step']"
+    except AttributeError:  # an older torch: dynamo compiles once more at the second step
+        pass
+    mode = "reduce-overhead" if run.cuda_graphs else None
+    agent.joint_loss = torch.compile(agent.joint_loss, mode=mode)
+    agent.actor_loss = torch.compile(agent.actor_loss, mode=mode)
+    for opt in (agent.model_opt, agent.actor_opt):
+        opt.step = torch.compile(opt.step, mode=mode)
+    if run.cuda_graphs:
+        update = agent.update
+
+        def update_step(batch, step):  # a new step: CUDA graph trees may reuse the last step's outputs
+            torch.compiler.cudagraph_mark_step_begin()
+            return update(batch, step)
+        agent.update = update_step
+
+
+# ================================================================================================
 # The replay buffer's sampler thread and its file
 # ================================================================================================
 def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device):

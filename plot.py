@@ -211,7 +211,8 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
 # only in these are seeds of one line. sear.py's RESUME_MAY_CHANGE is a subset.
 NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
                  "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate",
-                 "eval_every", "eval_episodes", "eval_episodes_per_task"}
+                 "eval_every", "eval_episodes", "eval_episodes_per_task",
+                 "compile", "cuda_graphs"}
 
 
 def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:

@@ -316,7 +316,7 @@ class SearAux(AuxLoss):
         recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)
         mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
         loss = self.c1 * recon_loss + self.c2 * mask_loss
-        return loss, {"recon_loss": recon_loss.item(), "mask_loss": mask_loss.item()}
+        return loss, {"recon_loss": recon_loss.detach(), "mask_loss": mask_loss.detach()}
 
     def decode(self, latent):
         z, z_r = self.decoder_inputs(latent)
@@ -374,7 +374,7 @@ class AEAux(ReconstructionAux):
         recon_loss = reconstruction_loss(self.recon_decoder(latent), obs_aug)
         penalty = 0.5 * latent.pow(2).sum(1).mean()
         loss = self.c1 * recon_loss + self.latent_lambda * penalty
-        return loss, {"recon_loss": recon_loss.item()}
+        return loss, {"recon_loss": recon_loss.detach()}
 
 
 def patch_mask(n, size, patch, ratio, device):
@@ -403,7 +403,7 @@ class MAEAux(ReconstructionAux):
         masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
         pred = self.recon_decoder(encoder(masked))
         recon_loss = reconstruction_loss(pred, obs_aug, weight=hidden)
-        return self.c1 * recon_loss, {"recon_loss": recon_loss.item()}
+        return self.c1 * recon_loss, {"recon_loss": recon_loss.detach()}
 
 
 class CURLAux(AuxLoss):
@@ -429,7 +429,7 @@ class CURLAux(AuxLoss):
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
-        return {"curl_loss": loss.item()}
+        return {"curl_loss": loss.detach()}
 
     def get_extra_state(self):  # for an exact resume: the EMA's phase and CURL's own Adam
         return self.updates, self.opt.state_dict()
@@ -484,9 +484,8 @@ def actor_metrics(actor_loss, mu) -> dict:
     """The failure of short DDPG runs, made visible: actor_saturated is the share of mean-action
     entries where float32's tanh is exactly +-1 (1 - tanh^2 = 0: no gradient brings them back),
     action_spread the std of the mean action over the batch (0: the same action in every state)."""
-    values = torch.stack([actor_loss.detach(), (mu.abs() == 1.0).float().mean(),
-                          mu.std(0, correction=0).mean()]).tolist()  # one device sync, not three
-    return dict(zip(("actor_loss", "actor_saturated", "action_spread"), values))
+    return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).float().mean(),
+            "action_spread": mu.std(0, correction=0).mean()}
 
 
 class Agent:
@@ -576,7 +575,7 @@ class Agent:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
                 aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
             loss = loss + aux_loss
-        metrics.update(drm_metrics, critic_loss=critic_loss.item(), q=q1.mean().item())
+        metrics.update(drm_metrics, critic_loss=critic_loss.detach(), q=q1.mean().detach())
         return loss, latent, metrics
 
     def update_critic(self, batch: Batch, step):
@@ -587,20 +586,23 @@ class Agent:
         self.model_opt.step()
         return latent.detach(), metrics
 
+    def actor_loss(self, latent, step):
+        """DDPG's loss, -min(Q1, Q2) of the actor's noisy action; and the mean action, for the logs."""
+        dist = self.actor(latent, self.std(step))
+        return -torch.min(*self.critic(latent, dist.sample(clip=self.cfg.std_clip))).mean(), dist.mean.detach()
+
     def update_actor(self, latent, step):
         """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
         loss does not train the encoder."""
-        dist = self.actor(latent, self.std(step))
-        action = dist.sample(clip=self.cfg.std_clip)
         # Nor the critic: the gradient DrQ-v2 computes for it here is discarded by the next critic
         # step; frozen, the backward pass skips those GEMMs.
         self.critic.requires_grad_(False)
-        actor_loss = -torch.min(*self.critic(latent, action)).mean()
+        actor_loss, mu = self.actor_loss(latent, step)
         self.critic.requires_grad_(True)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.actor_opt.step()
-        return actor_metrics(actor_loss, dist.mean.detach())
+        return actor_metrics(actor_loss, mu)
 
     def update(self, batch: Batch, step):
         if self.drm is not None:  # DrM's shrink-and-perturb, when the step is due
@@ -615,7 +617,8 @@ class Agent:
                 p_t.lerp_(p, self.cfg.critic_tau)
         if self.aux is not None:  # CURL's own step, last as in curl_sac.py
             metrics.update(self.aux.after_update(batch.obs))
-        return metrics
+        tensors = {k: v.float() for k, v in metrics.items() if torch.is_tensor(v)}  # DrM's are numbers already
+        return {**metrics, **dict(zip(tensors, torch.stack(list(tensors.values())).tolist()))}  # the logs' one sync
 
     def state_dict(self):
         return {"encoder": self.encoder.state_dict(), "actor": self.actor.state_dict(),
@@ -817,6 +820,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
         agent = Agent(cfg, action_dim, device)
         if source is not None:  # transfer: start from another run's networks
             experiment.copy_parts(agent, source, run.init_parts)
+        experiment.compile_update(agent, run)  # --compile: the update through torch.compile, else eager
         frame_shape = (3, *train_env.observation_space["pixels"].shape[1:])
         buffer = ReplayBuffer(cfg.replay_size, frame_shape, action_dim, cfg.frame_stack, cfg.nstep, cfg.discount)
         prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # None: sample here
@@ -884,5 +888,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    cli.reexec_with_huge_pages()  # glibc reads its malloc tunables only at start-up: restart once with them
     sys.exit(main())

@@ -182,7 +182,8 @@ RESERVED = {"--env": "--envs", "--method": "--methods", "--seed": "--seeds", "--
             "--resume": "re-running the sweep, which resumes interrupted runs",
             "--evaluate": "python sear.py --evaluate on a run directory of the sweep"}
 # Config fields that do not change the experiment, so they do not change the job's key.
-UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "threads", "log_every", "save_buffer"}
+UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "threads", "log_every", "save_buffer", "compile",
+           "cuda_graphs"}
 
 
 def parse_seeds(tokens: list[str]) -> tuple[int, ...]:

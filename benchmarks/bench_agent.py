@@ -7,20 +7,25 @@ DrQ-v2 update timed against this project's drq update in the same process.
     python benchmarks/bench_agent.py --methods drq sear ae mae curl --updates 5
     python benchmarks/bench_agent.py --methods drq drq+drm sear sear+drm --split-steps 0   # what --drm costs
     python benchmarks/bench_agent.py --official /path/to/facebookresearch/drqv2 --rounds 7
-    python benchmarks/bench_agent.py --compare-allocators             # glibc default vs sear.py's tunables
+    python benchmarks/bench_agent.py --compare-allocators             # glibc default vs tunables vs mallopt
     python benchmarks/bench_agent.py --breakdown --split-steps 0      # + time and GFLOP/s per op class
     python benchmarks/bench_agent.py --compare-layouts --rounds 3 --updates 2   # channels_last vs NCHW
+    python benchmarks/bench_agent.py --compare-compile --official DIR --precisions fp32   # eager vs --compile
+    python benchmarks/bench_agent.py --snapshot runs/<run dir> --profile --subnormals     # trained vs fresh
 
 Synthetic batches (no rendering) for the update table, so those are the learner's cost alone. Times
 are wall clock at the thread count shown; on a shared machine, compare ratios taken in the same run.
 """
 import argparse
+import copy
+import functools
 import os
 import resource
 import subprocess
 import sys
 import time
 import types
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -233,41 +238,237 @@ def load_official(path):
     return drqv2
 
 
-def official_comparison(args):
-    """The official update and this project's drq update, alternating in one process on the same
-    batch (same settings: batch, lr 1e-4, feature 50, hidden 1024, tau 0.01, clip 0.3)."""
+def official_update(args, batch):
+    """update(i): one update of the official DrQ-v2 agent on `batch`, with this project's drq settings
+    (batch, lr 1e-4, feature 50, hidden 1024, tau 0.01, clip 0.3)."""
     drqv2 = load_official(args.official)
-    device = torch.device(args.device)
-    theirs = drqv2.DrQV2Agent((9, 84, 84), (6,), device, lr=1e-4, feature_dim=50, hidden_dim=1024,
+    theirs = drqv2.DrQV2Agent((9, 84, 84), (6,), torch.device(args.device), lr=1e-4, feature_dim=50, hidden_dim=1024,
                               critic_target_tau=0.01, num_expl_steps=2000, update_every_steps=2,
                               stddev_schedule="linear(1.0,0.1,500000)", stddev_clip=0.3, use_tb=False)
-    ours = make_agent("drq", "fp32", args.batch_size, args.device)
-    batch = fake_batch(args.batch_size)
     official_batch = (batch[0], batch[2], batch[3], batch[4], batch[5])  # obs, action, reward, discount, next_obs
+    replay = iter(lambda: official_batch, None)
 
-    def time_theirs():
-        replay = iter(lambda: official_batch, None)
-        theirs.update(replay, 4_000)  # warm-up
-        start = time.perf_counter()
-        for _ in range(args.updates):
-            theirs.update(replay, 4_000)  # step % update_every == 0: every call updates
-        return (time.perf_counter() - start) / args.updates
+    def update(i):
+        theirs.update(replay, 4_000)  # step % update_every == 0: every call updates
+        sync(args.device)
+    return update
 
-    rows = []
-    for r in range(args.rounds):
-        cpu0 = time.process_time()
-        t_theirs = time_theirs()
-        cpu1 = time.process_time()
-        t_ours = time_updates(ours, batch, args.updates)
-        cpu2 = time.process_time()
-        rows.append((t_theirs, t_ours, (cpu1 - cpu0), (cpu2 - cpu1)))
-    ratios = np.array([t / o for t, o, _, _ in rows])
+
+def our_update(agent, batch, device):
+    def update(i):
+        agent.update(batch, step=5_000)
+        sync(device)
+    return update
+
+
+def official_comparison(args):
+    """The official update and this project's drq update, alternating in one process on the same batch."""
+    batch = fake_batch(args.batch_size)
+    costs = alternate({"official": official_update(args, batch),
+                       "ours": our_update(make_agent("drq", "fp32", args.batch_size, args.device), batch, args.device)},
+                      args.rounds, args.updates)
     print(f"## Official DrQ-v2 update vs this project's drq update (batch {args.batch_size}, fp32, "
           f"{torch.get_num_threads()} threads, alternating, {args.rounds} rounds x {args.updates} updates)\n")
     print("| round | official s/update | ours s/update | official / ours (>1: ours faster) |\n|---|---|---|---|")
-    for i, (t, o, _, _) in enumerate(rows):
-        print(f"| {i + 1} | {t:.3f} | {o:.3f} | {t / o:.2f} |")
-    print(f"\nmedian official/ours {np.median(ratios):.2f}, range {ratios.min():.2f}-{ratios.max():.2f}\n")
+    ratios = []
+    for i, (t, o) in enumerate(zip(costs["official"], costs["ours"])):
+        ratios.append(t.wall / o.wall)
+        print(f"| {i + 1} | {t.wall:.3f} | {o.wall:.3f} | {ratios[-1]:.2f} |")
+    print(f"\nmedian official/ours {np.median(ratios):.2f}, range {min(ratios):.2f}-{max(ratios):.2f}; {load()}\n")
+
+
+def compile_comparison(args):
+    """--compare-compile: each method's update eager (the reference), through --compile, and with
+    --cuda-graphs on CUDA, and for drq with --official the official update, alternating rounds on the
+    same batch in this process; the compiling (the first two updates, at two step numbers) timed
+    apart. A mode that fails is reported and left out."""
+    batch = fake_batch(args.batch_size, args.action_dim)
+    graphs = torch.device(args.device).type == "cuda"
+    print(f"## Eager vs --compile{' vs --cuda-graphs' if graphs else ''} (batch {args.batch_size}, "
+          f"{torch.get_num_threads()} threads on {args.device}, {args.rounds} alternating rounds x {args.updates} "
+          f"updates, median; compile time apart); {load()}\n")
+    header = ("| method | precision | mode | s/update (wall) | CPU s/update | eager / this | official / this | "
+              "compile s |\n|---|---|---|---|---|---|---|---|")
+    for precision in args.precisions:
+        for method in args.methods:
+            eager = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
+            contenders, compile_s, rows = {"eager": our_update(eager, batch, args.device)}, {}, []
+            for mode, run in (("compiled", cli.RunConfig(compile=True)),
+                              ("compiled + CUDA graphs", cli.RunConfig(compile=True, cuda_graphs=True)))[:1 + graphs]:
+                agent = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
+                agent.load_state_dict(eager.state_dict())
+                try:
+                    experiment.compile_update(agent, run)
+                    start = time.perf_counter()
+                    for step in (5_000, 5_002):
+                        agent.update(batch, step)
+                    sync(args.device)
+                    compile_s[mode] = time.perf_counter() - start
+                    contenders[mode] = our_update(agent, batch, args.device)
+                except Exception as e:  # a compiler or graph failure: say it, time the rest
+                    rows.append(f"| {method} | {precision} | {mode} | failed: {cli.first_sentence(e)[:150]} | | | | |")
+            if args.official and method == "drq" and precision == "fp32":
+                contenders["official DrQ-v2"] = official_update(args, fake_batch(args.batch_size))  # its 6 actions
+            costs = {k: median(c) for k, c in alternate(contenders, args.rounds, args.updates).items()}
+            official = costs.get("official DrQ-v2")
+            for mode, c in costs.items():
+                rows.append(f"| {method} | {precision} | {mode} | {c.wall:.3f} | {c.cpu:.3f} | "
+                            f"{costs['eager'].wall / c.wall:.2f} | "
+                            f"{f'{official.wall / c.wall:.2f}' if official else ''} | "
+                            f"{f'{compile_s[mode]:.0f}' if mode in compile_s else ''} |")
+            print("\n".join([header, *rows] if header else rows), flush=True)  # after dynamo's warnings, if any
+            header = None
+            torch._dynamo.reset()  # dynamo caches per function, over agents: the next method's agents start afresh
+    print(f"\n{load('(at the end)')}\n")
+
+
+# --- a trained agent against a fresh one -----------------------------------------------------------
+class Cost(NamedTuple):
+    """One measurement, per update: wall seconds, CPU seconds of this process (all its threads: on a
+    shared machine the stable one), and minor page faults (the allocator's work; 0 once the heap is reused)."""
+    wall: float
+    cpu: float
+    faults: float
+
+
+def measure(update, updates, warmup=1) -> Cost:
+    """`updates` calls of update(i) after `warmup` untimed ones."""
+    for i in range(warmup):
+        update(-1 - i)
+    wall, cpu, faults = time.perf_counter(), time.process_time(), resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for i in range(updates):
+        update(i)
+    return Cost((time.perf_counter() - wall) / updates, (time.process_time() - cpu) / updates,
+                (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / updates)
+
+
+def alternate(contenders: dict, rounds, updates, warmup=1) -> dict:
+    """Each contender's Costs over `rounds` rounds, the order of the contenders rotating every round."""
+    costs, names = {name: [] for name in contenders}, list(contenders)
+    for r in range(rounds):
+        for name in names[r % len(names):] + names[:r % len(names)]:
+            costs[name].append(measure(contenders[name], updates, warmup))
+    return costs
+
+
+def median(costs) -> Cost:
+    return Cost(*np.median(np.array(costs), axis=0))
+
+
+def load(note=""):
+    return "load average " + ", ".join(f"{x:.2f}" for x in os.getloadavg()) + note
+
+
+def run_agents(args):
+    """The agents of --snapshot RUN_DIR: its trained agent (snapshot.pt: weights and both Adams' state),
+    loaded as a resume loads it; the same, every tensor of its state copied into memory allocated now
+    (the values without the loaded memory); a fresh agent of the same config (seed 0). And the batches
+    they see (from the run's buffer.npz when it was saved, else random frames) and the run's agent step."""
+    snapshot = cli.load_snapshot(args.snapshot, "--snapshot")
+    cfg, _ = cli.split_config(snapshot["config"], sear.Config)
+    cfg.batch_size = args.batch_size
+    action_dim = [v for k, v in snapshot["agent"]["actor"].items() if k.startswith("policy.")][-1].numel()
+    device = torch.device(args.device)
+    agents = {name: sear.Agent(cfg, action_dim, device) for name in ("trained", "trained, state copied")}
+    agents["trained"].load_state_dict(snapshot["agent"])  # as a resume does (experiment.RunDir.restore)
+    agents["trained, state copied"].load_state_dict(copy.deepcopy(snapshot["agent"]))
+    torch.manual_seed(0)
+    agents["fresh"] = sear.Agent(cfg, action_dim, device)
+    path = os.path.join(args.snapshot, "buffer.npz")
+    rng = np.random.default_rng(0)
+    if snapshot.get("buffer_saved") and os.path.exists(path):
+        t = experiment.saved_buffer_t(path)
+        with np.load(path) as data:
+            n = len(data["rewards"])
+        buffer = sear.ReplayBuffer(n if t == n else cfg.replay_size, (3, 84, 84), action_dim, cfg.frame_stack,
+                                   cfg.nstep, cfg.discount)
+        experiment.load_buffer(buffer, path)
+        batches = [buffer.sample(args.batch_size, rng) for _ in range(args.batches)]
+        source = f"its buffer.npz ({n} steps)"
+    else:
+        batches = [fake_batch(args.batch_size, action_dim, seed=i) for i in range(args.batches)]
+        source = "random frames (the run saved no buffer)"
+    return agents, batches, snapshot["counters"]["step"], cfg, source
+
+
+def snapshot_comparison(args):
+    """--snapshot RUN_DIR: the run's trained agent against a fresh one on the same batches, alternating
+    rounds; with --profile the ops whose times differ most, with --subnormals where each holds
+    subnormal numbers (forward outputs, gradients, weights, Adam's state)."""
+    agents, batches, step, cfg, source = run_agents(args)
+    print(f"## Trained agent (snapshot at agent step {step} of {args.snapshot}) vs a fresh one\n\n"
+          f"{cfg.method}, batch {args.batch_size}, {cfg.precision}, {torch.get_num_threads()} threads, batches from "
+          f"{source}; {args.rounds} alternating rounds x {args.updates} updates, median; {load()}\n")
+    costs = alternate({k: (lambda i, a=a: a.update(batches[i % len(batches)], step)) for k, a in agents.items()},
+                      args.rounds, args.updates, args.warmup)
+    print("| agent | wall s/update | CPU s/update | minor faults/update |\n|---|---|---|---|")
+    for name, c in costs.items():
+        m = median(c)
+        print(f"| {name} | {m.wall:.3f} | {m.cpu:.3f} | {m.faults:.0f} |")
+    t, f = median(costs["trained"]), median(costs["fresh"])
+    print(f"\ntrained/fresh: wall {t.wall / f.wall:.2f}, CPU {t.cpu / f.cpu:.2f} (per round, CPU: "
+          + ", ".join(f"{a.cpu / b.cpu:.2f}" for a, b in zip(costs["trained"], costs["fresh"])) + f"); {load()}\n")
+    pair = {k: agents[k] for k in ("trained", "fresh")}
+    if args.profile:
+        profile_ops(pair, batches[0], step)
+    if args.subnormals:
+        subnormal_table(pair, batches[0], step)
+
+
+def profile_ops(agents: dict, batch, step, top=15):
+    """One profiled update per agent: self CPU time per op (all threads), the ops that differ most first."""
+    times = {}
+    for name, agent in agents.items():
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            agent.update(batch, step)
+        times[name] = {e.key: e.self_cpu_time_total / 1e3 for e in prof.key_averages()}
+    a, b = list(times)
+    ops = sorted(set(times[a]) | set(times[b]), key=lambda k: -abs(times[a].get(k, 0) - times[b].get(k, 0)))
+    print(f"### One profiled update each: self CPU ms per op, largest differences first\n\n| op | {a} | {b} |\n"
+          "|---|---|---|")
+    for op in ops[:top]:
+        print(f"| {op} | {times[a].get(op, 0):.1f} | {times[b].get(op, 0):.1f} |")
+    print(f"| all ops | {sum(times[a].values()):.1f} | {sum(times[b].values()):.1f} |\n")
+
+
+def subnormals(t) -> int:
+    t = t.detach()
+    return int(((t != 0) & (t.abs() < torch.finfo(t.dtype).tiny)).sum()) if t.is_floating_point() else 0
+
+
+def subnormal_table(agents: dict, batch, step):
+    """Subnormal floats per network in one update: forward outputs and output gradients of every leaf
+    module (hooks), then the weights and Adam's exp_avg / exp_avg_sq after it."""
+    counts = {}
+    for name, agent in agents.items():
+        c, hooks = counts.setdefault(name, {}), []  # (module or network, what) -> subnormal floats
+        nets = {k: getattr(agent, k) for k in ("encoder", "actor", "critic", "aux") if getattr(agent, k) is not None}
+        def add(key, n):
+            c[key] = c.get(key, 0) + n
+
+        def seen(module, inputs, out, name):  # the output now, its gradient when backward reaches it
+            add((name, "output"), subnormals(out))
+            if out.requires_grad:
+                out.register_hook(lambda g: add((name, "gradient"), subnormals(g)))
+        for net_name, net in nets.items():
+            for mod_name, mod in net.named_modules():
+                if not list(mod.children()):
+                    hooks.append(mod.register_forward_hook(functools.partial(seen, name=f"{net_name}.{mod_name}")))
+        agent.update(batch, step)
+        for h in hooks:
+            h.remove()
+        for net_name, net in nets.items():
+            c[net_name, "weights"] = sum(subnormals(p) for p in net.parameters())
+        for opt in (agent.model_opt, agent.actor_opt):
+            for state in opt.state.values():
+                for k in ("exp_avg", "exp_avg_sq"):
+                    c["Adam", k] = c.get(("Adam", k), 0) + subnormals(state[k])
+    a, b = list(counts)
+    print(f"### Subnormal floats in one update (rows with any)\n\n| where | what | {a} | {b} |\n|---|---|---|---|")
+    for key in sorted(set(counts[a]) | set(counts[b])):
+        if counts[a].get(key, 0) or counts[b].get(key, 0):
+            print(f"| {key[0]} | {key[1]} | {counts[a].get(key, 0)} | {counts[b].get(key, 0)} |")
+    print()
 
 
 def compare_layouts(args):
@@ -290,26 +491,53 @@ def compare_layouts(args):
     print()
 
 
+# glibc's malloc: the default; the GLIBC_TUNABLES that sear.py used to restart itself with (huge pages
+# for the heap, no mmap, no trim); and what it sets now at run time (cli.configure_allocator: no mmap,
+# no trim, no huge pages: mallopt has none).
+ALLOCATORS = {"glibc default": ("none", ""),
+              "GLIBC_TUNABLES restart (before)": ("none", "glibc.malloc.hugetlb=1:glibc.malloc.mmap_max=0:"
+                                                          f"glibc.malloc.trim_threshold={64 << 30}"),
+              "mallopt at run time (cli.configure_allocator)": ("mallopt", "")}
+
+
 def compare_allocators(args):
-    """drq and sear update time with glibc's default allocator and with sear.py's tunables, each in
-    a fresh process (glibc reads GLIBC_TUNABLES only at start-up)."""
-    print(f"## glibc allocator: default vs sear.py's GLIBC_MALLOC (batch {args.batch_size})\n")
-    print("| method | default s/update | tuned s/update | speed-up |\n|---|---|---|---|")
+    """Each method's update under each of ALLOCATORS, each measurement a fresh process (glibc reads
+    GLIBC_TUNABLES only at start-up), alternating rounds."""
+    print(f"## glibc's malloc (batch {args.batch_size}, {args.threads or cli.default_threads()} threads, "
+          f"{args.rounds} alternating rounds of a fresh process x {args.updates} updates after {args.warmup}, "
+          f"median); {load()}\n")
+    print("| method | allocator | wall s/update | CPU s/update | minor faults/update | wall / mallopt's |\n"
+          "|---|---|---|---|---|---|")
     for m in args.methods:
-        times = []
-        for tunables in ("glibc.malloc.hugetlb=0", ":".join(cli.GLIBC_MALLOC)):
+        def child(name):
+            allocator, tunables = ALLOCATORS[name]
+            env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
             out = subprocess.run([sys.executable, os.path.abspath(__file__), "--batch-size", str(args.batch_size),
                                   "--updates", str(args.updates), "--methods", m, "--device", args.device,
-                                  "--updates-only"], env={**os.environ, "GLIBC_TUNABLES": tunables},
+                                  "--threads", str(args.threads), "--allocator", allocator, "--warmup",
+                                  str(args.warmup), "--updates-only"],
+                                 env={**env, **({"GLIBC_TUNABLES": tunables} if tunables else {})},
                                  capture_output=True, text=True, check=True).stdout
-            times.append(float(out))
-        print(f"| {m} | {times[0]:.2f} | {times[1]:.2f} | {times[0] / times[1]:.2f}x |", flush=True)
+            return Cost(*map(float, out.split()))
+        costs = {name: [] for name in ALLOCATORS}
+        for r in range(args.rounds):
+            names = list(ALLOCATORS)
+            for name in names[r % len(names):] + names[:r % len(names)]:
+                costs[name].append(child(name))
+        ref = median(costs[list(ALLOCATORS)[-1]])
+        for name, c in costs.items():
+            c = median(c)
+            print(f"| {m} | {name} | {c.wall:.3f} | {c.cpu:.3f} | {c.faults:.0f} | {c.wall / ref.wall:.2f} |",
+                  flush=True)
+    print(f"\n{load('(at the end)')}\n")
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--updates", type=int, default=3, help="timed updates per measurement")
+    p.add_argument("--warmup", type=int, default=1, help="untimed updates before each measurement of the "
+                   "comparisons (--compare-allocators: the heap of a fresh process grows for the first 3)")
     p.add_argument("--methods", nargs="+", default=["drq", "sear"],
                    choices=[m + drm for drm in ("", cli.DRM_SUFFIX) for m in sear.METHODS])
     p.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
@@ -321,23 +549,44 @@ def main():
     p.add_argument("--split-warmup", type=int, default=300,
                    help="untimed steps that fill the split's buffer first (and until an episode has ended)")
     p.add_argument("--official", metavar="DIR", help="a checkout of facebookresearch/drqv2 to time against")
-    p.add_argument("--rounds", type=int, default=5, help="alternating rounds of the official comparison")
+    p.add_argument("--rounds", type=int, default=5, help="alternating rounds of every comparison")
     p.add_argument("--breakdown", action="store_true",
                    help="profile one update per method and precision: time and GFLOP/s per op class")
     p.add_argument("--compare-allocators", action="store_true",
-                   help="time each method with glibc's default allocator and with sear.py's tunables")
+                   help="time each method under glibc's default malloc, the GLIBC_TUNABLES restart sear.py used "
+                        "before, and cli.configure_allocator's mallopt, each in fresh processes, alternating")
     p.add_argument("--compare-layouts", action="store_true",
                    help="time each method with the conv nets in channels_last (sear.py) and in NCHW, alternating")
+    p.add_argument("--compare-compile", action="store_true",
+                   help="time each method eager, with --compile (and --cuda-graphs on CUDA), and the official "
+                        "update with --official, alternating; compile time apart")
+    p.add_argument("--action-dim", type=int, default=6, help="--compare-compile: the agents' action size (the "
+                   "compiled graphs are then those of a task with as many; cartpole 1, walker 6)")
+    p.add_argument("--snapshot", metavar="RUN_DIR",
+                   help="time the run's trained agent against a fresh one on batches of its own buffer, alternating")
+    p.add_argument("--batches", type=int, default=4, help="--snapshot: batches drawn from the run's buffer")
+    p.add_argument("--profile", action="store_true", help="--snapshot: per-op CPU times of one update each")
+    p.add_argument("--subnormals", action="store_true",
+                   help="--snapshot: subnormal floats in one update's outputs, gradients, weights and Adam state")
+    p.add_argument("--allocator", choices=["mallopt", "none"], default="mallopt",
+                   help="mallopt: glibc's malloc as sear.py sets it (cli.configure_allocator); none: leave it")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.allocator == "mallopt":
+        cli.configure_allocator()
     torch.set_num_threads(args.threads or cli.default_threads())
+    if args.snapshot:
+        return snapshot_comparison(args)
     if args.compare_allocators:
         return compare_allocators(args)
     if args.compare_layouts:
         return compare_layouts(args)
-    if args.updates_only:  # one method, one number: the child process of --compare-allocators
+    if args.compare_compile:
+        return compile_comparison(args)
+    if args.updates_only:  # one method: the child process of --compare-allocators prints its Cost
         agent = make_agent(args.methods[0], "fp32", args.batch_size, args.device)
-        print(time_updates(agent, fake_batch(args.batch_size), args.updates))
+        batch = fake_batch(args.batch_size)
+        print(*measure(lambda i: agent.update(batch, step=5_000), args.updates, args.warmup))
         return
 
     peaks = {"fp32": gemm_gflops(torch.float32, args.device), "bf16": gemm_gflops(torch.bfloat16, args.device)}
@@ -362,5 +611,4 @@ def main():
 
 
 if __name__ == "__main__":
-    cli.reexec_with_huge_pages()  # the allocator sear.py trains with (see --compare-allocators)
     main()

@@ -118,5 +118,5 @@ def main():
 
 
 if __name__ == "__main__":
-    cli.reexec_with_huge_pages()
+    cli.configure_allocator()  # glibc's malloc as sear.py sets it
     main()

@@ -1,39 +1,62 @@
 #!/usr/bin/env bash
 # What only a GPU can show, in <= 8 minutes on one GPU, into one summary file:
-#   1. the tests that take a device (tests/conftest.py: SEAR_TEST_DEVICE=cuda, `-m device`), and sear.py's
-#      smoke run and exact --resume test (test_cli.py; sear.py picks CUDA itself with --device auto)
-#   2. three training runs of the published-curve rung's command (cartpole-balance_sparse, sear, DrQ-v2's
-#      config, EXPERIMENTS.md), RUN_SECONDS each (default 90: with 3 x 120 s the rest would not fit in
-#      8 minutes): --prefetch off, --prefetch on, and --prefetch on in bf16; stopped by Ctrl-C (SIGINT)
-#   3. bench_agent.py on CUDA: s/update and the share of the GPU's fp32 / bf16 GEMM peak measured in the
-#      same run, and a training step split into env / act / sample / update
-#   4. bench_envs.py: env steps/s with MUJOCO_GL=egl, and which OpenGL renderer drew them (the GPU's,
-#      or Mesa's llvmpipe if EGL fell back to software)
+#   tests    the tests that take a device (tests/conftest.py: SEAR_TEST_DEVICE=cuda, `-m device`), and sear.py's
+#            smoke run and exact --resume test (test_cli.py; sear.py picks CUDA itself with --device auto)
+#   update   s/update of drq and sear at batch 256: eager, --compile, --compile --cuda-graphs
+#            (bench_agent.py --compare-compile, compile time apart)
+#   envs     env steps/s with MUJOCO_GL=egl, and which OpenGL renderer drew them (the GPU's, or Mesa's llvmpipe
+#            if EGL fell back to software)
+#   split    bench_agent.py: each method's s/update and share of the GPU's fp32 / bf16 GEMM peak measured in the
+#            same run, and where a training step's time goes (env / act / sample / update)
+#   train-M  a training run of the published-curve rung's command (cartpole-balance_sparse, sear, DrQ-v2's config,
+#            EXPERIMENTS.md) per mode M of --runs, RUN_SECONDS each (compiled modes COMPILE_SECONDS more), stopped by
+#            Ctrl-C (SIGINT): frames/s after the seed frames. Modes: eager (--prefetch on, what CUDA runs by
+#            default), prefetch-off, bf16, compile, graphs (--compile --cuda-graphs)
+#   layouts  channels_last (sear.py's conv layout) against NCHW, s/update (bench_agent.py --compare-layouts)
 #
-#   benchmarks/gpu_check.sh [--out DIR]    on a machine with a CUDA GPU
+#   benchmarks/gpu_check.sh [--out DIR] [--runs "MODES"] [--skip "STEPS"]   on a machine with a CUDA GPU
 #   benchmarks/gpu_check.sh --quick        the same steps on the CPU with tiny budgets (CI, so this cannot rot)
 #
-# --quick runs a fast subset of the device tests and only collects the rest (a test selection that no
-# longer matches anything fails), trains tiny networks for a few hundred frames, and benchmarks at batch 8.
-# Writes DIR (default runs/gpu_check-<UTC time>[-quick]; never an existing one): summary.md, each step's
-# log, the training runs. Exit status: 0 when every step passed, 1 otherwise, 2 for bad arguments.
+# Steps run in the order above. Each runs under what is left of the 480 s budget: one that would start with less
+# than its minimum left is reported as skipped; one that fails (a mode that does not compile, say) is reported
+# and the rest still run. --quick runs a fast subset of the device tests and only collects the rest (a test
+# selection that no longer matches anything fails), trains tiny networks for a few hundred frames, benchmarks at
+# batch 8 and skips the CUDA-only mode (graphs). Writes DIR (default runs/gpu_check-<UTC time>[-quick]; never an
+# existing one): summary.md, each step's log, the training runs. Exit status: 0 when every step that ran passed,
+# 1 otherwise, 2 for bad arguments. Needs only requirements.txt's packages (torch 2.11 or later).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 quick=0
 out=""
+runs=""
+skip=""
+modes="eager prefetch-off bf16 compile graphs"
 while [ $# -gt 0 ]; do
   case $1 in
     --quick) quick=1 ;;
-    --out) [ $# -ge 2 ] || { echo "gpu_check.sh: error: --out needs a directory" >&2; exit 2; }; out=$2; shift ;;
-    *) echo "gpu_check.sh: error: unknown argument $1 (use --quick, --out DIR)" >&2; exit 2 ;;
+    --out|--runs|--skip)
+      [ $# -ge 2 ] || { echo "gpu_check.sh: error: $1 needs a value" >&2; exit 2; }
+      case $1 in --out) out=$2 ;; --runs) runs=$2 ;; --skip) skip=$2 ;; esac
+      shift ;;
+    *) echo "gpu_check.sh: error: unknown argument $1 (use --quick, --out DIR, --runs MODES, --skip STEPS)" >&2; exit 2 ;;
   esac
   shift
 done
+for m in $runs; do
+  [[ " $modes " == *" $m "* ]] || { echo "gpu_check.sh: error: unknown mode $m in --runs (modes: $modes)" >&2; exit 2; }
+done
+for s in $skip; do
+  [[ " tests update envs split train layouts " == *" $s "* ]] ||
+    { echo "gpu_check.sh: error: unknown step $s in --skip (steps: tests update envs split train layouts)" >&2; exit 2; }
+done
 export MUJOCO_GL=${MUJOCO_GL:-egl}
+budget=480
 if [ $quick = 1 ]; then
-  device=cpu; seconds=${RUN_SECONDS:-60}; suffix=-quick
+  device=cpu; seconds=${RUN_SECONDS:-60}; compile_seconds=${COMPILE_SECONDS:-240}; suffix=-quick
+  runs=${runs:-"eager prefetch-off bf16 compile graphs"}
 else
-  device=cuda; seconds=${RUN_SECONDS:-90}; suffix=""
+  device=cuda; seconds=${RUN_SECONDS:-40}; compile_seconds=${COMPILE_SECONDS:-40}; suffix=""
+  runs=${runs:-"eager compile graphs"}
   if ! python -c "import sys, torch; sys.exit(not torch.cuda.is_available())" 2>/dev/null; then
     echo "gpu_check.sh: error: torch sees no CUDA device; on a CPU run benchmarks/gpu_check.sh --quick" >&2
     exit 2
@@ -54,22 +77,33 @@ start=$SECONDS
   echo
   echo "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown), host $(hostname), device $device:" \
        "$(python -c "import torch; print(torch.cuda.get_device_name() if torch.cuda.is_available() else 'no CUDA device')")," \
-       "torch $(python -c "import torch; print(torch.__version__)"), MUJOCO_GL=$MUJOCO_GL"
+       "torch $(python -c "import torch; print(torch.__version__)"), python $(python -c "import platform; print(platform.python_version())")," \
+       "MUJOCO_GL=$MUJOCO_GL; training modes: $runs$([ -n "$skip" ] && echo "; skipped by request: $skip")"
 } > "$summary"
 
-# step NAME LOG_LINES COMMAND...: run it with its output in NAME.log; the summary gets the command,
-# status, seconds and the log's last LOG_LINES lines (0: none).
+wanted() { [[ " $skip " != *" $1 "* ]]; }
+note() { printf '\n## %s\n' "$*" >> "$summary"; }
+
+# step NAME LOG_LINES MIN_SECONDS COMMAND...: run it with its output in NAME.log, cut at what is left of the
+# budget (the full form; --quick has none); skipped when less than MIN_SECONDS is left. The summary gets the
+# command, status, seconds and the log's last LOG_LINES lines (0: none).
 step() {
-  local name=$1 lines=$2
-  shift 2
-  local began=$SECONDS
-  "$@" > "$out/$name.log" 2>&1
+  local name=$1 lines=$2 least=$3
+  shift 3
+  local left=$((budget - (SECONDS - start)))
+  if [ $quick = 0 ] && [ $left -lt "$least" ]; then
+    note "$name: skipped, $left s of the ${budget} s budget left (it needs $least s)"
+    return
+  fi
+  local began=$SECONDS limit=()
+  [ $quick = 1 ] || limit=(timeout -k 10 "$left")
+  "${limit[@]}" "$@" > "$out/$name.log" 2>&1
   local status=$?
   [ "$name" = "${name#train-}" ] || [ $status != 130 ] || status=0  # a training run stopped by its timer
   [ $status = 0 ] || failed=1
   {
     echo
-    echo "## $name: $([ $status = 0 ] && echo ok || echo "FAILED (exit $status)"), $((SECONDS - began)) s"
+    echo "## $name: $([ $status = 0 ] && echo ok || { [ $status = 124 ] && echo "CUT at the budget" || echo "FAILED (exit $status)"; }), $((SECONDS - began)) s"
     echo
     printf '   '; printf ' %q' "$@"; echo
     if [ "$lines" -gt 0 ]; then
@@ -80,20 +114,49 @@ step() {
 }
 
 # 1. Tests on the device.
-slow_device_tests=()
-[ $quick = 1 ] && slow_device_tests=(-k "prefetcher or act_returns_bounded")
-step tests-device 1 env SEAR_TEST_DEVICE=$device python -m pytest -q -p no:cacheprovider -m device \
-  "${slow_device_tests[@]}" tests/
-cli_tests=(tests/test_cli.py -k "smoke_run_writes_csvs or resume_replays_exactly")
-if [ $quick = 1 ]; then  # CI has just run them in the full suite: here only that the selections still match
-  step tests-selections 1 env SEAR_TEST_DEVICE=$device python -m pytest -q -p no:cacheprovider --collect-only \
-    -m device tests/
-  step tests-cli 1 python -m pytest -q -p no:cacheprovider --collect-only "${cli_tests[@]}"
-else
-  step tests-cli 1 python -m pytest -q -p no:cacheprovider "${cli_tests[@]}"
+if wanted tests; then
+  slow_device_tests=()
+  [ $quick = 1 ] && slow_device_tests=(-k "prefetcher or act_returns_bounded")
+  step tests-device 1 30 env SEAR_TEST_DEVICE=$device python -m pytest -q -p no:cacheprovider -m device \
+    "${slow_device_tests[@]}" tests/
+  cli_tests=(tests/test_cli.py -k "smoke_run_writes_csvs or resume_replays_exactly")
+  if [ $quick = 1 ]; then  # CI has just run them in the full suite: here only that the selections still match
+    step tests-selections 1 0 env SEAR_TEST_DEVICE=$device python -m pytest -q -p no:cacheprovider --collect-only \
+      -m device tests/
+    step tests-cli 1 0 python -m pytest -q -p no:cacheprovider --collect-only "${cli_tests[@]}"
+  else
+    step tests-cli 1 30 python -m pytest -q -p no:cacheprovider "${cli_tests[@]}"
+  fi
 fi
 
-# 2. Training runs: the published-curve rung's command (EXPERIMENTS.md), sear, cut short by a timer.
+# 2. The update: eager, compiled, compiled + CUDA graphs. Action size 1 (cartpole's): the compiled graphs are the
+# training runs', whose compiling then comes from inductor's cache.
+if wanted update; then
+  if [ $quick = 1 ]; then
+    step update 12 0 python benchmarks/bench_agent.py --device cpu --compare-compile --methods drq --precisions fp32 \
+      --batch-size 8 --rounds 2 --updates 1 --action-dim 1
+  else
+    step update 12 60 python benchmarks/bench_agent.py --device cuda --compare-compile --methods drq sear \
+      --precisions fp32 --batch-size 256 --rounds 3 --updates 20 --action-dim 1
+  fi
+fi
+
+# 3. Env steps/s, rendered through EGL (on the GPU when its driver provides EGL).
+wanted envs && step envs 6 15 python benchmarks/bench_envs.py --steps "$([ $quick = 1 ] && echo 3 || echo 300)" \
+  --envs cartpole-balance_sparse walker-walk
+
+# 4. s/update and the share of the GEMM peaks measured in this run; a training step, part by part.
+if wanted split; then
+  if [ $quick = 1 ]; then
+    step split 40 0 python benchmarks/bench_agent.py --device cpu --methods drq --batch-size 8 --updates 1 \
+      --split-steps 2 --split-warmup 10 --split-method drq --env cartpole-balance_sparse
+  else
+    step split 40 30 python benchmarks/bench_agent.py --device cuda --updates 10 --split-steps 100 \
+      --split-warmup 300 --env cartpole-balance_sparse
+  fi
+fi
+
+# 5. Training runs: the published-curve rung's command (EXPERIMENTS.md), sear, cut short by a timer.
 rung=(--env cartpole-balance_sparse --method sear --seed 1 --action-repeat 2 --frame-stack 3 --batch-size 256
       --lr 1e-4 --nstep 3 --discount 0.99 --std-start 1.0 --std-end 0.1 --std-steps 100000 --std-clip 0.3
       --seed-frames 4000 --exploration-steps 2000 --update-every 2 --critic-tau 0.01 --feature-dim 50
@@ -103,42 +166,60 @@ rung+=(--eval-episodes 1 --eval-every 1000000 --device $device)
 [ $quick = 1 ] && rung+=(--frames 100 --seed-frames 80 --exploration-steps 40 --max-episode-steps 10
                          --batch-size 8 --latent-dim 64 --hidden-dim 32 --render-quality fast)
 seed_frames=$([ $quick = 1 ] && echo 80 || echo 4000)
-for variant in "prefetch-off fp32 off" "prefetch-on fp32 on" "prefetch-on-bf16 bf16 on"; do
-  set -- $variant
-  step "train-$1" 0 timeout --preserve-status -s INT -k 60 "$seconds" python sear.py "${rung[@]}" --precision "$2" \
-    --prefetch "$3" --run-root "$out/train-$1"
-  python - "$out/train-$1" "$seed_frames" >> "$summary" <<'EOF'
+mode_flags() {
+  case $1 in
+    eager) echo --prefetch on ;;
+    prefetch-off) echo --prefetch off ;;
+    bf16) echo --prefetch on --precision bf16 ;;
+    compile) echo --prefetch on --compile ;;
+    graphs) echo --prefetch on --compile --cuda-graphs ;;
+  esac
+}
+for mode in $runs; do
+  wanted train || break
+  if [ $mode = graphs ] && [ $device != cuda ]; then
+    note "train-$mode: skipped, CUDA graphs need a CUDA device"
+    continue
+  fi
+  s=$seconds
+  [[ $mode == compile || $mode == graphs ]] && s=$((seconds + compile_seconds))
+  least=$((s / 2 + 20))
+  left=$((budget - (SECONDS - start) - 20))  # its Ctrl-C timer ends inside the budget, with time to stop
+  [ $quick = 1 ] || [ $left -ge $s ] || s=$left
+  step "train-$mode" 0 $least timeout --preserve-status -s INT -k 15 "$s" python sear.py "${rung[@]}" \
+    $(mode_flags $mode) --run-root "$out/train-$mode"
+  [ -d "$out/train-$mode" ] || continue
+  python - "$out/train-$mode" "$seed_frames" >> "$summary" <<'EOF'
 import csv, glob, statistics, sys
 root, seed_frames = sys.argv[1], float(sys.argv[2])
 paths = glob.glob(f"{root}/*/train.csv")
 rows = list(csv.DictReader(open(paths[0]))) if paths else []
 learning = [float(r["fps"]) for r in rows if float(r["frame"]) > seed_frames and r["critic_loss"] != ""]
+steady = learning[1:] if len(learning) > 1 else learning  # the first learning episode holds any compiling
 last = f"frame {rows[-1]['frame']} after {float(rows[-1]['wall_time']):.0f} s" if rows else "no episode ended"
-fps = statistics.median(learning) if learning else None
-print(f"\n{last}; training after the seed frames, median of {len(learning)} episodes: "
-      + (f"{fps:.1f} frames/s = {fps / 4:.2f} updates/s (action repeat 2, an update every 2 steps)" if fps
-         else "no episode ended"))
+fps = statistics.median(steady) if steady else None
+print(f"\n{last}; training after the seed frames: " + (
+      f"first episode {learning[0]:.1f} frames/s, then median {fps:.1f} frames/s over {len(steady)} episodes "
+      f"= {fps / 4:.2f} updates/s (action repeat 2, an update every 2 steps)" if len(learning) > 1 else
+      f"{learning[0]:.1f} frames/s, one episode" if learning else "no episode ended"))
 EOF
 done
 
-# 3. The update on the device: s/update, share of the GEMM peaks measured in this run, the step split.
-if [ $quick = 1 ]; then
-  step bench-agent 40 python benchmarks/bench_agent.py --device cpu --methods drq --batch-size 8 --updates 1 \
-    --split-steps 2 --split-warmup 10 --split-method drq --env cartpole-balance_sparse
-else
-  step bench-agent 40 python benchmarks/bench_agent.py --device cuda --updates 20 --split-steps 200 \
-    --env cartpole-balance_sparse
+# 6. channels_last against NCHW.
+if wanted layouts; then
+  if [ $quick = 1 ]; then
+    step layouts 6 0 python benchmarks/bench_agent.py --device cpu --compare-layouts --methods drq --precisions fp32 \
+      --batch-size 8 --rounds 1 --updates 1
+  else
+    step layouts 6 20 python benchmarks/bench_agent.py --device cuda --compare-layouts --rounds 3 --updates 10
+  fi
 fi
-
-# 4. Env steps/s, rendered through EGL (on the GPU when its driver provides EGL).
-step bench-envs 6 python benchmarks/bench_envs.py --steps "$([ $quick = 1 ] && echo 3 || echo 300)" \
-  --envs cartpole-balance_sparse walker-walk
 
 total=$((SECONDS - start))
 {
   echo
-  echo "## total: $total s$([ $quick = 0 ] && echo ", budget 480 s: $([ $total -le 480 ] && echo within || echo OVER)")," \
-       "$([ $failed = 0 ] && echo "every step passed" || echo "SOME STEPS FAILED")"
+  echo "## total: $total s$([ $quick = 0 ] && echo ", budget $budget s: $([ $total -le $budget ] && echo within || echo OVER)")," \
+       "$([ $failed = 0 ] && echo "every step that ran passed" || echo "SOME STEPS FAILED")"
 } >> "$summary"
 cat "$summary"
 exit $failed

@@ -93,7 +93,7 @@ def loaded_after(statement: str) -> set[str]:
 
 def test_import_sear_loads_no_plotting_video_sweep_or_tensorboard_and_cli_no_torch():
     assert not {"matplotlib", "imageio", "submitit", "tensorboard"} & loaded_after("import sear")
-    # sear.py restarts itself with glibc's malloc tunables right after `import cli`: cheap only so.
+    # sweep.py and plot.py read flags and configs through cli without torch.
     assert not {"numpy", "torch"} & loaded_after("import cli")
 
 

@@ -34,8 +34,7 @@ KITCHEN_SOLVED = {  # FrankaKitchen's goals (OBS_ELEMENT_INDICES -> OBS_ELEMENT_
 
 
 def run_sear(args, cwd, timeout=300):
-    # GLIBC_TUNABLES as sear.py sets it: it then skips its re-exec (a second torch import).
-    env = {**os.environ, "MUJOCO_GL": "egl", "GLIBC_TUNABLES": ":".join(cli.GLIBC_MALLOC)}
+    env = {**os.environ, "MUJOCO_GL": "egl"}
     return subprocess.run([sys.executable, str(ROOT / "sear.py"), *args], capture_output=True, text=True,
                           timeout=timeout, cwd=cwd, env=env)
 

@@ -83,7 +83,7 @@ def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask(device):
     agent = sear.Agent(cfg, action_dim=2, device=device)
     torch.manual_seed(0)
     loss, latent, m = agent.joint_loss(fake_batch(), step=0)
-    expected = m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]
+    expected = (m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]).item()  # the terms: 0-d tensors
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     assert m["recon_loss"] > 0 and m["mask_loss"] > 0
 

@@ -1,0 +1,94 @@
+"""--compile: the update through torch.compile equals the eager update (the reference), without graph
+breaks, and a compiled run resumes exactly. Tiny networks; skipped where inductor has no C++ compiler."""
+import copy
+
+import pytest
+import torch
+
+import cli
+import experiment
+import sear
+from tests.test_cli import TINY, only_run_dir, rows, run
+from tests.test_sear import fake_batch, small_cfg
+
+needs_compiler = pytest.mark.skipif(cli.cxx_compiler() is None, reason="inductor's CPU kernels need a C++ compiler")
+UPDATES = 3
+
+
+def compiled_copy(agent):
+    twin = copy.deepcopy(agent)
+    experiment.compile_update(twin, cli.RunConfig(compile=True))
+    return twin
+
+
+@needs_compiler
+def test_compiled_update_equals_eager(device, method="sear"):  # drq's encoder: the resume test below
+    """Same weights, batches and RNG draws (inductor's fallback_random): the losses of every update agree
+    to float32 rounding (a relative 1e-4, or 1e-5 for values near 0: the weights they are computed with
+    differ by rounding too), and so do the weights after them, except where Adam (whose first steps move a
+    weight by about lr * sign(gradient)) turns a rounding-sized difference of a near-zero gradient into an
+    lr-sized one: at most 1% of any network's weights differ by more than lr / 10, none by more than
+    2 lr per update."""
+    import torch._dynamo.utils
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    cfg = small_cfg(method=method)
+    torch.manual_seed(0)
+    eager = sear.Agent(cfg, action_dim=2, device=device)
+    compiled = compiled_copy(eager)
+    for i in range(UPDATES):
+        batch = fake_batch(seed=i, device=device)
+        torch.manual_seed(100 + i)
+        want = eager.update(batch, step=5_000 + 2 * i)
+        torch.manual_seed(100 + i)
+        got = compiled.update(batch, step=5_000 + 2 * i)
+        assert got.keys() == want.keys()
+        for k in want:
+            assert got[k] == pytest.approx(want[k], rel=1e-4, abs=1e-5), (i, k)
+    for name in ("encoder", "actor", "critic", "critic_target", "aux"):
+        ours, theirs = getattr(compiled, name), getattr(eager, name)
+        if ours is None:
+            continue
+        for (pname, p), q in zip(ours.named_parameters(), theirs.parameters()):
+            diff = (p - q).abs()
+            assert diff.max() <= 2 * cfg.lr * UPDATES, f"{name}.{pname}"
+            assert (diff > cfg.lr / 10).float().mean() < 0.01, f"{name}.{pname}"
+    # No graph break but the two that torch.optim inserts around every step on purpose (pytorch#104053):
+    # the logs' metrics stay tensors until the update's one sync.
+    breaks = [k for k in torch._dynamo.utils.counters["graph_break"] if "User-inserted graph break" not in k]
+    assert not breaks, breaks
+
+
+@needs_compiler
+def test_compiled_run_resumes_exactly(tmp_path):
+    """With --compile, 48 frames + --resume to 80 equal 80 frames in one go, as the eager run does
+    (tests/test_cli.py): the compiled update is deterministic and draws from the snapshot's RNG state."""
+    common = ["--env", "walker-walk", "--method", "drq", "--seed", "5", "--save-buffer", "--compile", *TINY]
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    for d in (straight, split):
+        d.mkdir()
+    r = run([*common, "--frames", "80"], straight)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert run([*common, "--frames", "48"], split).returncode == 0
+    split_dir = only_run_dir(split)
+    r = run(["--resume", str(split_dir), "--frames", "80"], split)
+    assert r.returncode == 0, r.stderr[-2000:]
+    straight_dir = only_run_dir(straight)
+    losses = ["frame", "return", "critic_loss", "actor_loss", "q"]
+    assert [[x[c] for c in losses] for x in rows(split_dir / "train.csv")] == \
+        [[x[c] for c in losses] for x in rows(straight_dir / "train.csv")]
+    assert rows(split_dir / "train.csv")[-1]["critic_loss"] != ""  # updates happened after the resume
+    a = torch.load(straight_dir / "snapshot.pt", weights_only=False)["agent"]
+    b = torch.load(split_dir / "snapshot.pt", weights_only=False)["agent"]
+    for net in ("encoder", "critic", "actor"):
+        assert all(torch.equal(a[net][k], b[net][k]) for k in a[net]), net
+
+
+def test_cuda_graphs_need_compile_and_cuda(tmp_path):
+    r = run(["--env", "walker-walk", "--cuda-graphs", *TINY], tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip() == "sear.py: error: --cuda-graphs needs --compile (it replays the compiled update)"
+    r = run(["--env", "walker-walk", "--compile", "--cuda-graphs", "--device", "cpu", *TINY], tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip() == "sear.py: error: --cuda-graphs needs a CUDA device; this run's is cpu"
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
