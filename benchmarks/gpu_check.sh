@@ -75,7 +75,7 @@ start=$SECONDS
 {
   echo "# gpu_check.sh$([ $quick = 1 ] && echo " --quick") ($(date -u +%Y-%m-%dT%H:%M:%SZ))"
   echo
-  echo "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown), host $(hostname), device $device:" \
+  echo "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown) ($(git status --porcelain 2>/dev/null | grep -vc '^??') tracked files changed), host $(hostname), device $device:" \
        "$(python -c "import torch; print(torch.cuda.get_device_name() if torch.cuda.is_available() else 'no CUDA device')")," \
        "torch $(python -c "import torch; print(torch.__version__)"), python $(python -c "import platform; print(platform.python_version())")," \
        "MUJOCO_GL=$MUJOCO_GL; training modes: $runs$([ -n "$skip" ] && echo "; skipped by request: $skip")"
@@ -119,7 +119,8 @@ if wanted tests; then
   [ $quick = 1 ] && slow_device_tests=(-k "prefetcher or act_returns_bounded")
   step tests-device 1 30 env SEAR_TEST_DEVICE=$device python -m pytest -q -p no:cacheprovider -m device \
     "${slow_device_tests[@]}" tests/
-  cli_tests=(tests/test_cli.py -k "smoke_run_writes_csvs or resume_replays_exactly")
+  # Exact resume is a CPU property (CI runs it): CUDA's atomic adds make two runs of one seed differ.
+  cli_tests=(tests/test_cli.py -k "smoke_run_writes_csvs$([ $quick = 1 ] && echo " or resume_replays_exactly")")
   if [ $quick = 1 ]; then  # CI has just run them in the full suite: here only that the selections still match
     step tests-selections 1 0 env SEAR_TEST_DEVICE=$device python -m pytest -q -p no:cacheprovider --collect-only \
       -m device tests/
@@ -188,15 +189,15 @@ for mode in $runs; do
   [ $quick = 1 ] || [ $left -ge $s ] || s=$left
   step "train-$mode" 0 $least timeout --preserve-status -s INT -k 15 "$s" python sear.py "${rung[@]}" \
     $(mode_flags $mode) --run-root "$out/train-$mode"
-  [ -d "$out/train-$mode" ] || continue
-  python - "$out/train-$mode" "$seed_frames" >> "$summary" <<'EOF'
-import csv, glob, statistics, sys
-root, seed_frames = sys.argv[1], float(sys.argv[2])
-paths = glob.glob(f"{root}/*/train.csv")
-rows = list(csv.DictReader(open(paths[0]))) if paths else []
-learning = [float(r["fps"]) for r in rows if float(r["frame"]) > seed_frames and r["critic_loss"] != ""]
+  [ -f "$out/train-$mode.log" ] || continue
+  python - "$out/train-$mode.log" "$seed_frames" >> "$summary" <<'EOF'
+import re, statistics, sys
+# The progress lines (one per episode: its frames/s): a run stopped before its first snapshot removes its folder.
+log, seed_frames = sys.argv[1], float(sys.argv[2])
+eps = [(int(m[1]), float(m[2])) for m in re.finditer(r"^frame (\d+)/\d+ .*?\| ([\d.]+) fps \|.*? return ", open(log).read(), re.M)]
+learning = [fps for frame, fps in eps if frame > seed_frames]
 steady = learning[1:] if len(learning) > 1 else learning  # the first learning episode holds any compiling
-last = f"frame {rows[-1]['frame']} after {float(rows[-1]['wall_time']):.0f} s" if rows else "no episode ended"
+last = f"frame {eps[-1][0]}" if eps else "no episode ended"
 fps = statistics.median(steady) if steady else None
 print(f"\n{last}; training after the seed frames: " + (
       f"first episode {learning[0]:.1f} frames/s, then median {fps:.1f} frames/s over {len(steady)} episodes "

@@ -80,6 +80,7 @@ def test_save_video_writes_the_first_episode_of_each_evaluation(tiny_runs):
     ("sear", {"mask_iou", "mask_bce", "recon_psnr"}, 4),
 ])
 def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores, panels, device):
+    pytest.importorskip("imageio_ffmpeg", reason="films need imageio-ffmpeg (requirements.txt; sear.py checks it at start)")
     import imageio.v2 as imageio
     cfg = sear.Config(method=method, frame_stack=3, latent_dim=64, hidden_dim=32)
     agent = sear.Agent(cfg, 2, device)

@@ -82,7 +82,7 @@ def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask(device):
     cfg = small_cfg(recon_coef=0.5, mask_coef=0.25)
     agent = sear.Agent(cfg, action_dim=2, device=device)
     torch.manual_seed(0)
-    loss, latent, m = agent.joint_loss(fake_batch(), step=0)
+    loss, latent, m = agent.joint_loss(fake_batch(device=device), step=0)
     expected = (m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]).item()  # the terms: 0-d tensors
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     assert m["recon_loss"] > 0 and m["mask_loss"] > 0
@@ -525,7 +525,7 @@ def test_prefetcher_delivers_the_batches_direct_sampling_would(device):
     pre.close()
     assert not pre.thread.is_alive()
     for d, f in zip(direct, fetched):
-        assert all(y.device == device for y in f)
+        assert all(y.device.type == device.type for y in f)  # cuda:0 where the fixture says cuda
         assert all(np.array_equal(x, y.cpu().numpy()) for x, y in zip(d, f))
 
 
