@@ -2,7 +2,7 @@
 
     python benchmarks/published_curve.py runs/ --out docs/published_curve.png
     python benchmarks/published_curve.py --published ../drqv2 --task cartpole_balance runs/
-    python benchmarks/published_curve.py runs/ --official curve-runs/official-*
+    python benchmarks/published_curve.py runs/ --official 'runs/curve/official-*/'
     python benchmarks/published_curve.py --results benchmarks/published_curve_results.csv runs/ --record
     python benchmarks/published_curve.py --power 3 8 16
 
@@ -24,7 +24,7 @@ seeds together.
 evaluation) read as runs beside the run dirs: the evaluations of runs whose directories are gone. A run
 dir and a results file's run of the same method and seed are one run: their returns must agree where
 both have a frame, and the run dir's rows win. --record writes every run's evaluations back into the
-results file, so that what the runs reached outlives the machine they ran on.
+results file, so that what the runs reached outlives their run directories.
 Errors are one line on stderr, exit code 2.
 """
 from __future__ import annotations
