@@ -801,9 +801,9 @@ def configure_allocator() -> bool:
     """Set glibc's malloc as above for the rest of this process; False where there is no glibc
     (other platforms, musl), which then keep their allocator. Why: on CPU the 84x84x32 decoder
     activations (tens of MB at batch 256) would otherwise be mapped and unmapped by glibc at every
-    update: ~1.8M page faults per SEAR update with 4 KB pages, none once the heap keeps them
-    (docs/speed.md, "Allocator"). Called where a process starts (main): blocks allocated before
-    it keep their mmap."""
+    update: 0.9M minor page faults per SEAR update at batch 256, none once the heap keeps them
+    (`benchmarks/bench_agent.py --compare-allocators`, docs/speed.md, "Allocator"). Called where a
+    process starts (main): blocks allocated before it keep their mmap."""
     if not sys.platform.startswith("linux"):
         return False
     import ctypes

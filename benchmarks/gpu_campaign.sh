@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The decisive run of the published-curve rung (docs/verdict.md): N seeds of our DrQ (with --sear, N of SEAR
-# after them) on cartpole-balance_sparse with DrQ-v2's configuration (EXPERIMENTS.md, Rung PC) to F frames,
+# The decisive run of the published-curve rung (EXPERIMENTS.md#the-verdict-rule): N seeds of our DrQ (with
+# --sear, N of SEAR after them) on cartpole-balance_sparse with DrQ-v2's configuration (EXPERIMENTS.md,
+# Rung PC) to F frames,
 # one sear.py process per seed (--threads 1, CUDA when torch sees it), as many at a time as the CPU cores and
 # the GPU's memory allow, inside a wall-clock budget; then the rung's rule (benchmarks/published_curve.py) on
 # what they reached, into one summary.md and its figure.
@@ -9,7 +10,7 @@
 #                              [--render-quality paper|fast] [--eval-every FRAMES]
 #   benchmarks/gpu_campaign.sh --quick     2 seeds of tiny networks for 200 frames on the CPU (CI, so it cannot rot)
 #
-# Defaults: 16 seeds, 40000 frames, 9 minutes (docs/verdict.md, "The campaign": what is measured, what is
+# Defaults: 16 seeds, 40000 frames, 9 minutes (EXPERIMENTS.md#the-gpu-campaign: what is measured, what is
 # assumed). --eval-every 20000 evaluates where the published curve has points (the rule reads 20k and 40k);
 # evaluations take no part in training (the same train.csv at any spacing), and at 10000, DrQ-v2's, they
 # would add 10 of every 45 rendered steps. At the budget's end (less the time to stop and to apply the rule)
@@ -122,7 +123,8 @@ jobs=()
 for s in $(seq 1 "$seeds"); do jobs+=("drq-$s"); done
 [ $sear = 1 ] && for s in $(seq 1 "$seeds"); do jobs+=("sear-$s"); done
 cores=$(nproc)
-gib_per_run=${GIB_PER_RUN:-4}  # assumed (docs/verdict.md); the summary gives the GPU memory the runs used
+# assumed (EXPERIMENTS.md#the-gpu-campaign); the summary gives the GPU memory the runs used
+gib_per_run=${GIB_PER_RUN:-4}
 slots=$(( ${#jobs[@]} < cores ? ${#jobs[@]} : cores ))
 if [ "$device" = cuda ]; then
   by_memory=$(( free_gib / gib_per_run ))
@@ -202,7 +204,7 @@ fi
   tail -n 1 "$out/logs/env_probe.log"
   if [ "$device" = cuda ] && [ "$quality" = paper ] && grep -q llvmpipe "$out/logs/env_probe.log"; then
     echo "(EGL renders on the CPU here, not on the GPU: paper frames then cost ~20 ms of a core each, and 16 seeds" \
-         "to 40k frames do not fit 9 minutes; docs/verdict.md, \"The campaign\")"
+         "to 40k frames do not fit 9 minutes; EXPERIMENTS.md#the-gpu-campaign)"
   fi
   echo
   echo "$seeds seeds of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \

@@ -2,7 +2,7 @@
 
     python benchmarks/published_curve.py runs/ --out docs/published_curve.png
     python benchmarks/published_curve.py --published ../drqv2 --task cartpole_balance runs/
-    python benchmarks/published_curve.py runs/ --official curve-runs/official-*
+    python benchmarks/published_curve.py runs/ --official 'runs/curve/official-*/'
     python benchmarks/published_curve.py --results benchmarks/published_curve_results.csv runs/ --record
     python benchmarks/published_curve.py --power 3 8 16
 
@@ -12,8 +12,8 @@ CSV itself; by default benchmarks/drqv2_curves, the copy of the cartpole_balance
 arguments are run directories, folders of runs or globs (as plot.py takes them); runs on other tasks are
 left out. Prints the source commit; a table at --frames with each method's
 mean over its seeds and every seed (planned seeds without a run or an evaluation yet say so), and the
-published seeds' mean and min-max; the p-values of the rung's rule (docs/verdict.md) for every method, and
-its verdict; each run's wall time. --power prints how often the rule finds a given collapse rate. Writes the
+published seeds' mean and min-max; the p-values of the rung's rule (EXPERIMENTS.md#the-verdict-rule) for every
+method, and its verdict; each run's wall time. --power prints how often the rule finds a given collapse rate. Writes the
 figure: each seed thin, each method's mean thick, the published mean with its min-max band.
 Runs of benchmarks/drqv2_loader.py (a drqv2_loader.json in the run dir) are one more method,
 "drq (drqv2 loader)", and so are runs with --drm ("drq+drm": DrM). --official adds runs of the official code
@@ -24,7 +24,7 @@ seeds together.
 evaluation) read as runs beside the run dirs: the evaluations of runs whose directories are gone. A run
 dir and a results file's run of the same method and seed are one run: their returns must agree where
 both have a frame, and the run dir's rows win. --record writes every run's evaluations back into the
-results file, so that what the runs reached outlives the machine they ran on.
+results file, so that what the runs reached outlives their run directories.
 Errors are one line on stderr, exit code 2.
 """
 from __future__ import annotations
@@ -45,8 +45,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import cli  # noqa: E402
 import plot  # noqa: E402
 
-# The rung's rule (docs/verdict.md), stated before the decisive run: our seeds against the published seeds,
-# one-sided (the alternative: ours learn worse), at a family-wise ALPHA split over TESTS tests (Bonferroni):
+# The rung's rule (EXPERIMENTS.md#the-verdict-rule), stated before the decisive run: our seeds against the
+# published seeds, one-sided (the alternative: ours learn worse), at a family-wise ALPHA split over TESTS tests
+# (Bonferroni):
 # Fisher's exact test on the seeds at the task's maximum at LATE frames (>= SOLVED of 1000: the published
 # files' solved seeds dip to 990.0-997.0 at later points), and the Mann-Whitney U test on the EARLY returns.
 # NO MATCH: either p < ALPHA / TESTS. MATCH: neither, with at least MATCH_SEEDS of our seeds (the rule then
@@ -354,7 +355,8 @@ def rule_report(ours: dict, ref: dict, methods: list[str], at=(EARLY, LATE)) -> 
     """The p-values beside the table, then the verdict line of each group (ours first)."""
     level = ALPHA / TESTS
     late_k = plot.short_frames(at[1])  # where ours are read: LATE but in a reduced run's check
-    lines = [f"rule (docs/verdict.md): one-sided, ours worse; alpha {ALPHA:g} over {TESTS} tests, each at {level:g}; "
+    lines = [f"rule (EXPERIMENTS.md#the-verdict-rule): one-sided, ours worse; alpha {ALPHA:g} over {TESTS} tests, "
+             f"each at {level:g}; "
              f"at the maximum: >= {SOLVED:g} at {plot.short_frames(LATE)}; MATCH needs {MATCH_SEEDS} seeds", "",
              f"| runs | seeds at {late_k} | at the maximum | Fisher p ({late_k}) | Mann-Whitney p "
              f"({plot.short_frames(at[0])}) | Mann-Whitney p ({late_k}, not counted) | verdict |", "|---|---|---|---|---|---|---|"]
