@@ -127,7 +127,7 @@ GRIDS = {
         # distracting.yaml: difficulty medium, background distraction only (sear.py's defaults);
         # walker's 1-step returns and batch 512 are the authors' recipe (--recipe authors).
         flags=PAPER_FRAMES, metric="return",
-        doc="Distracting Control walker-walk and cup-catch (pass --backgrounds DAVIS/JPEGImages/480p)"),
+        doc="Distracting Control walker-walk and cup-catch (add --backgrounds davis for the paper's DAVIS videos)"),
     "ablations": Grid(
         envs=tuple(f"metaworld-{t}" for t in ABLATION_TASKS), flags=PAPER_FRAMES, metric="success",
         variants=(Variant("sear", "sear"), Variant("drq", "drq"),
