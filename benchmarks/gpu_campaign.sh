@@ -1,43 +1,56 @@
 #!/usr/bin/env bash
-# The decisive run of the published-curve rung (EXPERIMENTS.md#the-verdict-rule): N seeds of our DrQ (with
-# --sear, N of SEAR after them) on cartpole-balance_sparse with DrQ-v2's configuration (EXPERIMENTS.md,
-# Rung PC) to F frames,
-# one sear.py process per seed (--threads 1, CUDA when torch sees it), as many at a time as the CPU cores and
-# the GPU's memory allow, inside a wall-clock budget; then the rung's rule (benchmarks/published_curve.py) on
-# what they reached, into one summary.md and its figure.
+# The decisive run of the published-curve rung (EXPERIMENTS.md#the-verdict-rule), in parts that fit one device command each:
+# seeds K..K+N-1 of our DrQ (with --sear, the same seeds of SEAR after them) on cartpole-balance_sparse with
+# DrQ-v2's configuration (EXPERIMENTS.md, Rung PC) to F frames, one sear.py process per seed, P at a time
+# (each with cores / P torch threads, CUDA when torch sees it), inside a wall-clock budget; then the rung's
+# rule (benchmarks/published_curve.py) on this part's seeds into summary.md, its figure, and results.csv (the
+# part's evaluations and settings, the format of benchmarks/published_curve_results.csv). The rule on the
+# union of the parts is published_curve.py with --results once per part: it refuses parts that share a seed
+# or ran different settings.
 #
-#   benchmarks/gpu_campaign.sh [--seeds N] [--frames F] [--budget-minutes M] [--sear] [--out DIR]
-#                              [--render-quality paper|fast] [--eval-every FRAMES]
+#   benchmarks/gpu_campaign.sh [--first-seed K] [--seeds N] [--frames F] [--budget-minutes M] [--parallel P]
+#                              [--sear] [--out DIR] [--copy-to DIR] [--render-quality paper|fast] [--eval-every FRAMES]
 #   benchmarks/gpu_campaign.sh --quick     2 seeds of tiny networks for 200 frames on the CPU (CI, so it cannot rot)
 #
-# Defaults: 16 seeds, 40000 frames, 9 minutes (EXPERIMENTS.md#the-gpu-campaign: what is measured, what is
-# assumed). --eval-every 20000 evaluates where the published curve has points (the rule reads 20k and 40k);
-# evaluations take no part in training (the same train.csv at any spacing), and at 10000, DrQ-v2's, they
-# would add 10 of every 45 rendered steps. At the budget's end (less the time to stop and to apply the rule)
-# each run still going gets a SIGTERM: sear.py stops at its next episode end with a snapshot (a second one,
-# 20 s later, stops it at once); the summary names the seeds that did not reach F, and the rule leaves them
-# out. Seeds are started while the time left exceeds the wall time of the slowest seed finished so far.
-# Nothing outlives the script: an exit, Ctrl-C or SIGTERM stops every run it started.
-# Writes DIR (default runs/gpu_campaign-<UTC time>[-quick]; never an existing one): summary.md, published_curve.png,
-# runs/<method>-<seed>/ (the run dirs), logs/. Exit status: 0 when every run ended as planned (F reached or
-# stopped by the budget) and the rule ran, 1 otherwise, 2 for bad arguments.
+# Defaults: seeds 1-4, 40000 frames, 4 at a time, 9 minutes. Sizing (measured on the lent H200 machine: 16
+# cores, EGL drawing on the GPU; EXPERIMENTS.md#the-gpu-campaign): four DrQ runs at once make ~100-108
+# frames/s each (~413 together), so a seed's 40k frames take 370-400 s, and its evaluations at 0, 20k and
+# 40k (10 episodes of 500 agent steps each, 15,000 steps at ~900 steps/s) ~17 s more: ~390-417 s, under the
+# 495 s the runs get (9 minutes less the 45 s reserve), inside one 10-minute device command. All 16 seeds the
+# rule needs for MATCH do not fit one: 640k frames at ~413 frames/s is ~26 minutes. So they are 4 parts,
+# --first-seed 1, 5, 9 and 13, one per loan of the machine (15 minutes with its start: a second part does not
+# fit). --sear doubles a part's runs: with --seeds 2, DrQ and SEAR seeds K, K+1 run at once. --copy-to DIR (a
+# folder that outlives the machine) gets the part's 4 small files (seeds<K>-<L>_summary.md, _results.csv,
+# _curve.png, _logs.tar.gz: logs and the run dirs without snapshots).
+# --eval-every 20000 evaluates where the rule reads (20k and 40k); evaluations take no part in training (the
+# same train.csv at any spacing), and at 10000, DrQ-v2's, they would add 10 of every 45 rendered steps. At the
+# budget's end (less the time to stop and to apply the rule) each run still going gets a SIGTERM: sear.py
+# stops at its next episode end with a snapshot (a second one, 20 s later, stops it at once); the summary
+# names the seeds that did not reach F, and the rule leaves them out. Seeds are started while the time left
+# exceeds the wall time of the slowest seed finished so far. Nothing outlives the script: an exit, Ctrl-C or
+# SIGTERM stops every run it started.
+# Writes DIR (default runs/gpu_campaign-<UTC time>[-quick]; never an existing one): summary.md, results.csv,
+# published_curve.png, runs/<method>-<seed>/ (the run dirs), logs/. Exit status: 0 when every run ended as
+# planned (F reached or stopped by the budget) and the rule ran, 1 otherwise, 2 for bad arguments.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 die() { echo "gpu_campaign.sh: error: $*" >&2; exit 2; }
-quick=0 seeds="" frames="" budget="" sear=0 out="" quality="" eval_every=""
+same=() quick=0 first=1 seeds="" frames="" budget="" parallel=4 sear=0 out="" copy_to="" quality="" eval_every=""
 while [ $# -gt 0 ]; do
   case $1 in
-    --quick) quick=1 ;;
-    --sear) sear=1 ;;
-    --seeds|--frames|--budget-minutes|--out|--render-quality|--eval-every)
+    --quick) quick=1 same+=("$1") ;;
+    --sear) sear=1 same+=("$1") ;;
+    --first-seed|--seeds|--frames|--budget-minutes|--parallel|--out|--copy-to|--render-quality|--eval-every)
       [ $# -ge 2 ] || die "$1 needs a value"
       case $1 in
-        --seeds) seeds=$2 ;; --frames) frames=$2 ;; --budget-minutes) budget=$2 ;; --out) out=$2 ;;
-        --render-quality) quality=$2 ;; --eval-every) eval_every=$2 ;;
+        --first-seed) first=$2 ;; --seeds) seeds=$2 ;; --frames) frames=$2 ;; --budget-minutes) budget=$2 ;;
+        --parallel) parallel=$2 ;; --out) out=$2 ;; --copy-to) copy_to=$2 ;; --render-quality) quality=$2 ;;
+        --eval-every) eval_every=$2 ;;
       esac
+      case $1 in --first-seed|--out|--copy-to) ;; *) same+=("$1" "$2") ;; esac  # what the next part repeats
       shift ;;
-    *) die "unknown argument $1 (use --quick, --seeds N, --frames F, --budget-minutes M, --sear, --out DIR," \
-           "--render-quality paper|fast, --eval-every FRAMES)" ;;
+    *) die "unknown argument $1 (use --quick, --first-seed K, --seeds N, --frames F, --budget-minutes M," \
+           "--parallel P, --sear, --out DIR, --copy-to DIR, --render-quality paper|fast, --eval-every FRAMES)" ;;
   esac
   shift
 done
@@ -45,9 +58,11 @@ if [ $quick = 1 ]; then
   seeds=${seeds:-2} frames=${frames:-200} budget=${budget:-3} quality=${quality:-fast}
   [[ $frames =~ ^[1-9][0-9]*$ ]] && eval_every=${eval_every:-$(( frames > 1 ? frames / 2 : 1 ))}
 else
-  seeds=${seeds:-16} frames=${frames:-40000} budget=${budget:-9} eval_every=${eval_every:-20000} quality=${quality:-paper}
+  seeds=${seeds:-4} frames=${frames:-40000} budget=${budget:-9} eval_every=${eval_every:-20000} quality=${quality:-paper}
 fi
+[[ $first =~ ^[1-9][0-9]*$ ]] || die "--first-seed must be a positive integer, got '$first'"
 [[ $seeds =~ ^[1-9][0-9]*$ ]] || die "--seeds must be a positive integer, got '$seeds'"
+[[ $parallel =~ ^[1-9][0-9]*$ ]] || die "--parallel must be a positive integer, got '$parallel'"
 [[ $frames =~ ^[1-9][0-9]*$ ]] || die "--frames must be a positive integer, got '$frames'"
 [[ $eval_every =~ ^[1-9][0-9]*$ ]] || die "--eval-every must be a positive integer, got '$eval_every'"
 [[ $budget =~ ^([0-9]+\.?[0-9]*|\.[0-9]+)$ ]] && [ "$(awk "BEGIN{print ($budget > 0)}")" = 1 ] \
@@ -57,9 +72,17 @@ py=${PYTHON:-$(command -v python || command -v python3)}
 [ -n "$py" ] || die "no python on PATH (set PYTHON)"
 out=${out:-runs/gpu_campaign-$(date -u +%Y%m%d-%H%M%S)$([ $quick = 1 ] && echo -quick)}
 [ -e "$out" ] && die "$out exists; give another --out"
+last=$((first + seeds - 1))
+part=seeds$first-$last  # the part's name in --copy-to
+if [ -n "$copy_to" ]; then
+  mkdir -p "$copy_to" 2>/dev/null && [ -w "$copy_to" ] || die "--copy-to $copy_to: cannot write there"
+  for f in summary.md results.csv curve.png logs.tar.gz; do
+    [ -e "$copy_to/${part}_$f" ] && die "$copy_to/${part}_$f exists; give another --copy-to"
+  done
+fi
 
-# Each run: one torch thread, one llvmpipe thread where EGL renders in software; EGL draws on the GPU where its
-# driver provides it (the summary names the renderer).
+# Each run: --threads torch threads (set below), one OpenMP thread elsewhere, one llvmpipe thread where EGL
+# renders in software; EGL draws on the GPU where its driver provides it (the summary names the renderer).
 export MUJOCO_GL=${MUJOCO_GL:-egl} OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 LP_NUM_THREADS=1
 start=$SECONDS
 budget_s=$(awk "BEGIN{printf \"%d\", $budget * 60}")
@@ -120,12 +143,13 @@ EOF
                       "(see $out/logs/env_probe.log)" >&2; exit 1; }
 
 jobs=()
-for s in $(seq 1 "$seeds"); do jobs+=("drq-$s"); done
-[ $sear = 1 ] && for s in $(seq 1 "$seeds"); do jobs+=("sear-$s"); done
+for s in $(seq "$first" "$last"); do jobs+=("drq-$s"); done
+[ $sear = 1 ] && for s in $(seq "$first" "$last"); do jobs+=("sear-$s"); done
 cores=$(nproc)
 # assumed (EXPERIMENTS.md#the-gpu-campaign); the summary gives the GPU memory the runs used
 gib_per_run=${GIB_PER_RUN:-4}
 slots=$(( ${#jobs[@]} < cores ? ${#jobs[@]} : cores ))
+[ "$parallel" -lt "$slots" ] && slots=$parallel
 if [ "$device" = cuda ]; then
   by_memory=$(( free_gib / gib_per_run ))
   [ "$by_memory" -lt "$slots" ] && slots=$by_memory
@@ -135,13 +159,14 @@ if [ "$device" = cuda ]; then
     monitor=$!
   fi
 fi
+threads=$(( cores / slots ))  # the cores shared out: 4 runs of 4 threads on 16 cores is what was measured
 
 # The rung's command (EXPERIMENTS.md, Rung PC), without --save-buffer: no run here is resumed.
 rung=(--env cartpole-balance_sparse --frames "$frames" --action-repeat 2 --frame-stack 3 --batch-size 256 --lr 1e-4
       --nstep 3 --discount 0.99 --std-start 1.0 --std-end 0.1 --std-steps 100000 --std-clip 0.3 --seed-frames 4000
       --exploration-steps 2000 --update-every 2 --critic-tau 0.01 --feature-dim 50 --hidden-dim 1024
       --replay-size 1000000 --eval-every "$eval_every" --eval-episodes 10 --precision fp32
-      --render-quality "$quality" --threads 1 --device "$device")
+      --render-quality "$quality" --threads "$threads" --device "$device")
 [ $quick = 1 ] && rung+=(--seed-frames 80 --exploration-steps 40 --max-episode-steps 25 --batch-size 8
                          --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2)
 
@@ -184,9 +209,11 @@ trained=$((SECONDS - start))
 
 methods=(drq)
 [ $sear = 1 ] && methods+=(sear)
-rule=("$py" benchmarks/published_curve.py "$out/runs" --methods "${methods[@]}" --seeds $(seq 1 "$seeds")
-      --frames $(seq 0 "$eval_every" "$frames") --out "$out/published_curve.png")
+rule=("$py" benchmarks/published_curve.py "$out/runs" --methods "${methods[@]}" --seeds $(seq "$first" "$last")
+      --frames $(seq 0 "$eval_every" "$frames") --out "$out/published_curve.png" --results "$out/results.csv" --record)
 [ $quick = 1 ] && rule+=(--rule-frames "$eval_every" $((2 * eval_every)))  # a reduced run: the pipeline
+match_seeds=$("$py" -c 'import sys; sys.path.insert(0, "benchmarks"); import published_curve as p; print(p.MATCH_SEEDS)' \
+              2>/dev/null || echo 16)  # the seeds the rule needs for MATCH
 rule_status=0
 if compgen -G "$out/runs/*/*/config.json" > /dev/null; then
   "${rule[@]}" > "$out/logs/published_curve.log" 2>&1
@@ -203,12 +230,13 @@ fi
        "torch $torch_version, $cores CPU cores, MUJOCO_GL=$MUJOCO_GL"
   tail -n 1 "$out/logs/env_probe.log"
   if [ "$device" = cuda ] && [ "$quality" = paper ] && grep -q llvmpipe "$out/logs/env_probe.log"; then
-    echo "(EGL renders on the CPU here, not on the GPU: paper frames then cost ~20 ms of a core each, and 16 seeds" \
-         "to 40k frames do not fit 9 minutes; EXPERIMENTS.md#the-gpu-campaign)"
+    echo "(EGL renders on the CPU here, not on the GPU: paper frames then cost ~20 ms of a core each, and a seed's" \
+         "40k frames do not fit 9 minutes; EXPERIMENTS.md#the-gpu-campaign)"
   fi
   echo
-  echo "$seeds seeds of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \
-       "$slots at a time (cores $cores$([ "$device" = cuda ] && echo ", GPU memory at $gib_per_run GiB per run"));" \
+  echo "seeds $first-$last of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \
+       "$slots at a time, $threads torch threads each (cores $cores, --parallel $parallel$(
+       [ "$device" = cuda ] && echo ", GPU memory at $gib_per_run GiB per run"));" \
        "budget $budget_s s, runs stopped from $((stop_at - start)) s"
   echo
   for job in "${jobs[@]}"; do echo "$job ${status_of[$job]:-not_started} ${wall_of[$job]:-}"; done > "$out/logs/status.txt"
@@ -240,10 +268,31 @@ EOF
   echo
   echo "![published curve](published_curve.png)"
   echo
+  echo "## The campaign: this part and the next"
+  echo
+  echo "This part holds seeds $first-$last ($seeds of the $match_seeds that MATCH needs: the verdict above counts" \
+       "this part alone). Its evaluations and settings: results.csv$([ -n "$copy_to" ] && echo " (${part}_results.csv)")."
+  echo "The next part (other seeds, the same settings): \`benchmarks/gpu_campaign.sh --first-seed $((last + 1))${same[*]:+ ${same[*]}}\`."
+  parts=()  # parts of this size from seed 1 until MATCH's seeds (and this part) are covered
+  for ((a = 1; a <= (last > match_seeds ? last : match_seeds); a += seeds)); do
+    parts+=(--results "seeds$a-$((a + seeds - 1))_results.csv")
+  done
+  echo "The rule on the union of the parts (each part's results file once, as --copy-to names it; it refuses a seed" \
+       "in two parts and parts of different settings): \`python benchmarks/published_curve.py ${parts[*]}" \
+       "--methods ${methods[*]} --seeds \$(seq 1 $((a - 1))) --frames $(seq -s ' ' 0 "$eval_every" "$frames")" \
+       "--out published_curve.png\`."
+  echo
   echo "## total: $((SECONDS - start)) s (training $trained s), budget $budget_s s:" \
        "$([ $((SECONDS - start)) -le "$budget_s" ] && echo within || echo OVER)"
 } > "$summary"
 cat "$summary"
+if [ -n "$copy_to" ]; then  # the part's small files, for a machine whose disk does not outlive it
+  for f in summary.md results.csv; do [ -e "$out/$f" ] && cp "$out/$f" "$copy_to/${part}_$f"; done
+  [ -e "$out/published_curve.png" ] && cp "$out/published_curve.png" "$copy_to/${part}_curve.png"
+  tar -czf "$copy_to/${part}_logs.tar.gz" -C "$out" --exclude='*.pt' --exclude='*.npz' --exclude='*.mp4' logs runs \
+    || echo "gpu_campaign.sh: could not write $copy_to/${part}_logs.tar.gz" >&2
+  echo "copied to $copy_to: $(cd "$copy_to" && ls -d "${part}"_* | tr '\n' ' ')"
+fi
 failed=$rule_status
 for job in "${jobs[@]}"; do
   case ${status_of[$job]:-not_started} in 0|stopped|not_started) ;; *) failed=1 ;; esac

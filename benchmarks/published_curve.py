@@ -4,6 +4,7 @@
     python benchmarks/published_curve.py --published ../drqv2 --task cartpole_balance runs/
     python benchmarks/published_curve.py runs/ --official 'runs/curve/official-*/'
     python benchmarks/published_curve.py --results benchmarks/published_curve_results.csv runs/ --record
+    python benchmarks/published_curve.py --results part1.csv --results part2.csv --seeds 1 2 3 4 5 6 7 8
     python benchmarks/published_curve.py --power 3 8 16
 
 --published is a checkout of facebookresearch/drqv2 (read in place: curves/dmc_<task>.csv, and the
@@ -24,7 +25,11 @@ seeds together.
 evaluation) read as runs beside the run dirs: the evaluations of runs whose directories are gone. A run
 dir and a results file's run of the same method and seed are one run: their returns must agree where
 both have a frame, and the run dir's rows win. --record writes every run's evaluations back into the
-results file, so that what the runs reached outlives their run directories.
+results file, so that what the runs reached outlives their run directories, with each run's settings
+(its config.json less where and how fast it ran: FREE_SETTINGS) in a "settings" column. --results may be
+given again: the parts of a campaign run on separate machines (benchmarks/gpu_campaign.sh --first-seed),
+one verdict on their union. Parts must hold different seeds and, where a method's runs carry settings,
+the same settings.
 Errors are one line on stderr, exit code 2.
 """
 from __future__ import annotations
@@ -164,13 +169,18 @@ def load_official(paths: list[str], task: str) -> dict[int, dict]:
 
 
 RESULT_FIELDS = ["method", "seed", "task", "frame", "return", "wall_time", "source"]
+SETTINGS = "settings"  # an optional column, written by --record: files recorded before it have none
+# Config fields that change neither what a run learns nor how it is scored: where and how fast it ran, what
+# it kept. Everything else (frames, the rung's flags, the evaluations) must be equal for runs read as one method.
+FREE_SETTINGS = {"seed", "device", "compile", "cuda_graphs", "prefetch", "threads", "run_root", "resume", "evaluate",
+                 "save_buffer", "save_video", "log_every", "snapshot_minutes"}
 AGREE = 0.05  # returns of one run read twice: a results file may hold them rounded to 0.1
 
 
 def load_results(path: str, task: str) -> dict[str, dict[int, dict]]:
     """{method: {seed: run}} of a results file's rows on `task`, in the shape load_ours gives; a run's
     "dir" is its rows' source (the run dir it was recorded from, or where its numbers were read)."""
-    runs, rows = {}, {}
+    runs, rows, settings = {}, {}, {}
     try:
         with open(path, newline="") as f:
             reader = csv.DictReader(f)
@@ -187,16 +197,70 @@ def load_results(path: str, task: str) -> dict[str, dict[int, dict]]:
                     rows.setdefault(key, {})[float(row["frame"])] = (float(row["return"]), wall, row["source"])
                 except ValueError:
                     raise CurveError(f"--results {path}: bad row {row}") from None
+                settings.setdefault(key, set()).add(row.get(SETTINGS) or "")
     except OSError as e:
         raise CurveError(f"--results {path}: {e.strerror or e}") from None
     for (method, seed), points in rows.items():
+        if len(settings[method, seed]) > 1:
+            raise CurveError(f"--results {path}: {method} seed {seed} has rows of different settings")
         frames = sorted(points)
         runs.setdefault(method, {})[seed] = {
             "dir": points[frames[-1]][2], "config": {"method": method, "seed": seed, "frames": frames[-1],
                                                      "recorded": True},
             "frames": np.array(frames), "values": np.array([points[f][0] for f in frames]),
-            "walls": [points[f][1] for f in frames], "sources": [points[f][2] for f in frames]}
+            "walls": [points[f][1] for f in frames], "sources": [points[f][2] for f in frames],
+            "settings": settings[method, seed].pop(), "file": path}
     return runs
+
+
+def load_parts(paths: list[str], task: str) -> dict[str, dict[int, dict]]:
+    """The runs of several results files (a campaign's parts, run on separate machines) as one: each seed
+    of a method in one part alone, and every run of a method with the same settings."""
+    union = {}
+    for path in paths:
+        for method, runs in load_results(path, task).items():
+            for seed, run in runs.items():
+                other = union.get(method, {}).get(seed)
+                if other is not None:
+                    raise CurveError(f"{method} seed {seed} is in both {other['file']} and {path}: parts run "
+                                     f"different seeds (gpu_campaign.sh --first-seed)")
+                union.setdefault(method, {})[seed] = run
+    for method, runs in union.items():
+        check_settings(method, runs, every_known=len(paths) > 1)
+    return union
+
+
+def check_settings(method: str, runs: dict[int, dict], every_known: bool):
+    """One verdict needs one experiment: refuse runs of `method` whose settings differ, and with
+    `every_known` (parts to combine) runs whose settings are not known."""
+    known = {s: r for s, r in sorted(runs.items()) if r["settings"]}
+    if every_known and len(known) < len(runs):
+        seed = next(s for s in sorted(runs) if s not in known)
+        raise CurveError(f"{method} seed {seed} ({runs[seed]['file']}) has no settings: cannot tell whether it ran "
+                         f"as the other parts (a results file that gpu_campaign.sh or --record writes has them)")
+    if not known:
+        return
+    first, *rest = known.items()
+    for seed, run in rest:
+        if run["settings"] != first[1]["settings"]:
+            try:
+                a, b = json.loads(first[1]["settings"]), json.loads(run["settings"])
+            except ValueError:
+                raise CurveError(f"{method}: settings that are not JSON in {first[1]['file']} or {run['file']}") from None
+            diff = ", ".join(f"{k} {a.get(k, '-')} against {b.get(k, '-')}" for k in sorted(set(a) | set(b))
+                             if a.get(k) != b.get(k))
+            raise CurveError(f"{method} seeds {first[0]} ({first[1]['file']}) and {seed} ({run['file']}) ran "
+                             f"different settings ({diff}): the rule takes the seeds of one experiment")
+
+
+def settings_of(run: dict) -> str:
+    """The run's settings as one JSON line (its config less FREE_SETTINGS); "" where not known (the
+    official code's runs, a results file without them)."""
+    if "settings" in run:
+        return run["settings"]
+    if run["config"].get("recorded") or run["config"].get("method") == OFFICIAL:
+        return ""
+    return json.dumps({k: v for k, v in run["config"].items() if k not in FREE_SETTINGS}, sort_keys=True)
 
 
 def merge_runs(recorded: dict, live: dict) -> dict:
@@ -232,13 +296,13 @@ def record_results(path: str, runs: dict, task: str):
         with open(path, newline="") as f:
             kept = [row for row in csv.DictReader(f) if plot.task_key(row["task"]) != task]
     rows = kept + [{"method": m, "seed": s, "task": task, "frame": f"{f:.0f}", "return": repr(float(v)),
-                    "wall_time": "" if w is None else f"{w:.0f}", "source": src}
+                    "wall_time": "" if w is None else f"{w:.0f}", "source": src, SETTINGS: settings_of(r)}
                    for m, seeds in sorted(runs.items()) for s, r in sorted(seeds.items())
                    for f, v, w, src in zip(r["frames"], r["values"], r["walls"],
                                            r.get("sources") or [r["dir"]] * len(r["frames"]))]
 
     def write(f):
-        w = csv.DictWriter(f, RESULT_FIELDS, lineterminator="\n")
+        w = csv.DictWriter(f, RESULT_FIELDS + [SETTINGS], lineterminator="\n", restval="")
         w.writeheader()
         w.writerows(rows)
     cli.write_atomically(path, write, "w")
@@ -373,7 +437,8 @@ def rule_report(ours: dict, ref: dict, methods: list[str], at=(EARLY, LATE)) -> 
         lines.append(f"| {label} | {t['seeds']} | {t['solved']} | {t['fisher']:.3g} | {t['mwu_early']:.3g} | "
                      f"{t['mwu_late']:.3g} | {outcome} |")
         why = {"NO MATCH": f"below {level:g}", "MATCH": f"neither below {level:g}, with {t['seeds']} seeds",
-               "UNDECIDED": f"neither below {level:g}; MATCH needs {MATCH_SEEDS} seeds"}[outcome]
+               "UNDECIDED": f"neither below {level:g}; MATCH needs {MATCH_SEEDS} seeds at {late_k}: "
+                            f"{MATCH_SEEDS - t['seeds']} more"}[outcome]
         named = ", ".join(f"{k[0]} seed {k[1]}" if isinstance(k, tuple) else f"seed {k}" for k in left_out)
         note = f"; left out, no evaluation at {plot.short_frames(at[1])}: {named}" if left_out else ""
         check = ("" if tuple(at) == (EARLY, LATE) else f"; ours at {at[0]:.0f} and {at[1]:.0f} frames against the "
@@ -496,7 +561,9 @@ def main(argv=None) -> int:
                    help="table rows; those beyond every run's budget are left out")
     p.add_argument("--official", nargs="+", default=[], metavar="DIR",
                    help="run dirs (or globs) of the official drqv2 train.py on this machine: one more method")
-    p.add_argument("--results", metavar="CSV", help="a results file: evaluations of runs whose dirs are gone")
+    p.add_argument("--results", metavar="CSV", action="append",
+                   help="a results file: evaluations of runs whose dirs are gone; again for each part of a campaign "
+                        "(different seeds, the same settings)")
     p.add_argument("--record", action="store_true",
                    help="write every run's evaluations into --results (made if missing)")
     p.add_argument("--out", default="published_curve.png", help="PNG to write")
@@ -522,8 +589,10 @@ def main(argv=None) -> int:
         ref = curves[task]
         if args.record and not args.results:
             raise CurveError("--record writes into a results file: give it with --results")
-        recorded = load_results(args.results, task) if args.results and (
-            os.path.exists(args.results) or not args.record) else {}
+        if args.record and len(args.results) > 1:
+            raise CurveError("--record writes into one results file: give --results once")
+        results = args.results or []
+        recorded = load_parts(results, task) if results and (os.path.exists(results[0]) or not args.record) else {}
         ours = load_ours(args.runs, task) if args.runs else {}
         seeds = {m: args.seeds for m in args.methods}
         methods = list(args.methods)
@@ -531,7 +600,7 @@ def main(argv=None) -> int:
             ours[OFFICIAL] = load_official(args.official, task)
         ours = merge_runs(recorded, ours)
         if not ours:
-            raise CurveError(f"no runs on {task} in {' '.join(args.runs + args.official + [args.results or ''])}".strip())
+            raise CurveError(f"no runs on {task} in {' '.join(args.runs + args.official + results)}".strip())
         for m in sorted(ours):  # the official code's, the loader's and --drm runs: one more method each
             if m not in methods and (m == OFFICIAL or m.endswith((LOADER, cli.DRM_SUFFIX))):
                 methods.append(m)
@@ -542,7 +611,7 @@ def main(argv=None) -> int:
         frames = [f for f in args.frames if f <= budget]
         report = rule_report(ours, ref, methods, tuple(args.rule_frames))
         figure(ours, ref, methods, args.out, task, commit)
-        recorded_rows = record_results(args.results, ours, task) if args.record else None
+        recorded_rows = record_results(results[0], ours, task) if args.record else None
     except (CurveError, plot.PlotError, cli.StorageError) as e:
         print(f"published_curve.py: error: {e}", file=sys.stderr)
         return 2
@@ -555,7 +624,7 @@ def main(argv=None) -> int:
     print(wall_time_table(ours))
     print(f"\nwrote {args.out}")
     if recorded_rows is not None:
-        print(f"recorded {recorded_rows} evaluations of {task} in {args.results}")
+        print(f"recorded {recorded_rows} evaluations of {task} in {results[0]}")
     return 0
 
 

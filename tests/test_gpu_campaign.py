@@ -45,6 +45,8 @@ def runs_of(out: Path) -> list[int]:
 
 @pytest.mark.parametrize("args, message", [
     (["--seeds", "0"], "--seeds must be a positive integer, got '0'"),
+    (["--first-seed", "0"], "--first-seed must be a positive integer, got '0'"),
+    (["--parallel", "all"], "--parallel must be a positive integer, got 'all'"),
     (["--frames", "ten"], "--frames must be a positive integer, got 'ten'"),
     (["--budget-minutes", "-1"], "--budget-minutes must be a positive number, got '-1'"),
     (["--render-quality", "nice"], "--render-quality must be paper or fast, got 'nice'"),
@@ -90,3 +92,25 @@ def test_a_sigterm_to_the_campaign_stops_every_run_it_started(tmp_path, campaign
     _, err = p.communicate(timeout=60)
     assert p.returncode == 143 and "SIGTERM: stopping the runs" in err, err
     assert runs_of(out) == []
+
+
+def test_a_part_runs_its_seeds_and_leaves_its_small_files(tmp_path, campaign):
+    """--first-seed 3: seed 3 alone (the other parts run the others); --copy-to gets the part's 4 small
+    files, whose results file the rule on the union of the parts reads; the summary says what comes next."""
+    out, copy = tmp_path / "c", tmp_path / "copy"
+    p = campaign("--quick", "--first-seed", 3, "--seeds", 1, "--out", out, "--copy-to", copy)
+    stdout, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err
+    assert [d.name for d in (out / "runs").iterdir()] == ["drq-3"]
+    assert sorted(f.name for f in copy.iterdir()) == [f"seeds3-3_{f}" for f in
+                                                      ("curve.png", "logs.tar.gz", "results.csv", "summary.md")]
+    rows = (copy / "seeds3-3_results.csv").read_text().splitlines()
+    assert rows[0].endswith(",settings") and len(rows) == 4 and all(r.startswith("drq,3,") for r in rows[1:])
+    summary = (copy / "seeds3-3_summary.md").read_text()
+    assert "This part holds seeds 3-3 (1 of the 16 that MATCH needs" in summary
+    assert "`benchmarks/gpu_campaign.sh --first-seed 4 --quick --seeds 1`" in summary
+    assert "--results seeds3-3_results.csv --results seeds4-4_results.csv" in summary
+    assert "--seeds $(seq 1 16) --frames 0 100 200" in summary
+    p = campaign("--quick", "--first-seed", 3, "--seeds", 1, "--out", tmp_path / "d", "--copy-to", copy)
+    _, err = p.communicate(timeout=60)  # a part's files are never overwritten
+    assert p.returncode == 2 and "seeds3-3_summary.md exists" in err and not (tmp_path / "d").exists()

@@ -292,7 +292,7 @@ def test_the_rule_on_the_recorded_runs_gives_scipys_p_values(tmp_path, capsys):
                             f"{scipy_mwu(late, PUBLISHED_40K):.3g}"], label
         assert row[6] == "UNDECIDED |"
     assert "\nverdict: UNDECIDED (3 seeds at 40k, 2 at the maximum: Fisher p = 0.231, Mann-Whitney p (20k) = 0.591: " \
-           "neither below 0.025; MATCH needs 16 seeds)" in out
+           "neither below 0.025; MATCH needs 16 seeds at 40k: 13 more)" in out
     assert "the same rule on drq and drqv2 official together: UNDECIDED so far (5 seeds at 40k, 3 at the maximum: " \
            "Fisher p = 0.0952" in out  # the official seed 3 stopped at 10k: left out
     assert "| DrQ-v2 published | 10 | 10 | | | | |" in out
@@ -340,3 +340,49 @@ def test_power_is_one_when_every_seed_collapses_and_matches_enumeration_when_non
     assert 0 < exact < 0.05 and abs(simulated - exact) < 4 * np.sqrt(exact * (1 - exact) / draws)
     assert published_curve.main(["--power", "3", "--power-draws", "50"]) == 0
     assert "| 3 | " in capsys.readouterr().out
+
+
+def record_part(tmp_path, capsys, published, name, seeds, frames=FRAMES, config=None):
+    """A campaign's part as gpu_campaign.sh leaves it: its run dirs recorded into its own results file."""
+    runs, results = tmp_path / name, tmp_path / f"{name}.csv"
+    for seed in seeds:
+        d = make_run(runs, "cartpole-balance_sparse", "drq", seed, frames=frames, base=860.0)
+        (d / "config.json").write_text(json.dumps({"env": "cartpole-balance_sparse", "method": "drq", "seed": seed,
+                                                   "frames": 40000, "device": f"cuda:{seed}", **(config or {})}))
+    code, _, err = run_main(capsys, runs, "--published", published, "--results", results, "--record",
+                            "--out", tmp_path / f"{name}.png")
+    assert code == 0, err
+    return results
+
+
+def test_the_rule_on_the_union_of_a_campaigns_parts(tmp_path, published, capsys):
+    """--results once per part (run on machines whose run dirs are gone): one verdict on every part's
+    seeds; the device a run used is no setting."""
+    parts = [record_part(tmp_path, capsys, published, f"part{k}", seeds)
+             for k, seeds in enumerate([(1, 2), (3, 4), (5,)])]
+    code, out, err = run_main(capsys, *sum((["--results", p] for p in parts), []), "--published", published,
+                              "--seeds", 1, 2, 3, 4, 5, "--out", tmp_path / "union.png")
+    assert code == 0, err
+    assert table_row(out, "40k")[1:7] == ["930.0", "910.0", "920.0", "930.0", "940.0", "950.0"]
+    assert "verdict: UNDECIDED (5 seeds at 40k" in out and "MATCH needs 16 seeds at 40k: 11 more)" in out
+
+
+@pytest.mark.parametrize("breakage, message", [
+    ("a seed in two parts", "drq seed 2 is in both"),
+    ("other frames", "ran different settings (frames 40000 against 60000)"),
+    ("a part without settings", "part2.csv) has no settings: cannot tell"),
+    ("record into two", "--record writes into one results file"),
+])
+def test_parts_of_different_experiments_are_refused(tmp_path, published, capsys, breakage, message):
+    first = record_part(tmp_path, capsys, published, "part1", (1, 2))
+    second = record_part(tmp_path, capsys, published, "part2", (2, 3) if breakage == "a seed in two parts" else (3,),
+                         config={"frames": 60000} if breakage == "other frames" else None)
+    if breakage == "a part without settings":  # a results file recorded before the settings column
+        second.write_text("\n".join(line.rsplit(",\"{", 1)[0].removesuffix(",settings")
+                                    for line in second.read_text().splitlines()) + "\n")
+    before = {p: p.read_text() for p in (first, second)}
+    code, _, err = run_main(capsys, "--results", first, "--results", second, "--published", published,
+                            "--out", tmp_path / "union.png", *(["--record"] if breakage == "record into two" else []))
+    assert code == 2 and err.count("\n") == 1 and err.startswith("published_curve.py: error:"), err
+    assert message in err
+    assert {p: p.read_text() for p in (first, second)} == before and not (tmp_path / "union.png").exists()
