@@ -13,7 +13,7 @@
 #   benchmarks/gpu_campaign.sh --quick     2 seeds of tiny networks for 200 frames on the CPU (CI, so it cannot rot)
 #
 # Defaults: seeds 1-4, 40000 frames, 4 at a time, 9 minutes. Sizing (measured on the lent H200 machine: 16
-# cores, EGL drawing on the GPU; EXPERIMENTS.md#the-gpu-campaign): four DrQ runs at once make ~100-108
+# cores, EGL drawing on the GPU; docs/published-curve.md#the-gpu-campaign): four DrQ runs at once make ~100-108
 # frames/s each (~413 together), so a seed's 40k frames take 370-400 s, and its evaluations at 0, 20k and
 # 40k (10 episodes of 500 agent steps each, 15,000 steps at ~900 steps/s) ~17 s more: ~390-417 s, under the
 # 495 s the runs get (9 minutes less the 45 s reserve), inside one 10-minute device command. All 16 seeds the
@@ -146,7 +146,7 @@ jobs=()
 for s in $(seq "$first" "$last"); do jobs+=("drq-$s"); done
 [ $sear = 1 ] && for s in $(seq "$first" "$last"); do jobs+=("sear-$s"); done
 cores=$(nproc)
-# assumed (EXPERIMENTS.md#the-gpu-campaign); the summary gives the GPU memory the runs used
+# assumed (docs/published-curve.md#the-gpu-campaign); the summary gives the GPU memory the runs used
 gib_per_run=${GIB_PER_RUN:-4}
 slots=$(( ${#jobs[@]} < cores ? ${#jobs[@]} : cores ))
 [ "$parallel" -lt "$slots" ] && slots=$parallel
@@ -231,7 +231,7 @@ fi
   tail -n 1 "$out/logs/env_probe.log"
   if [ "$device" = cuda ] && [ "$quality" = paper ] && grep -q llvmpipe "$out/logs/env_probe.log"; then
     echo "(EGL renders on the CPU here, not on the GPU: paper frames then cost ~20 ms of a core each, and a seed's" \
-         "40k frames do not fit 9 minutes; EXPERIMENTS.md#the-gpu-campaign)"
+         "40k frames do not fit 9 minutes; docs/published-curve.md#the-gpu-campaign)"
   fi
   echo
   echo "seeds $first-$last of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \

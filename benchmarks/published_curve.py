@@ -50,7 +50,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import cli  # noqa: E402
 import plot  # noqa: E402
 
-# The rung's rule (EXPERIMENTS.md#the-verdict-rule), stated before the decisive run: our seeds against the
+# The rung's rule (docs/published-curve.md#the-verdict-rule, its power), stated before the decisive run: our seeds against the
 # published seeds, one-sided (the alternative: ours learn worse), at a family-wise ALPHA split over TESTS tests
 # (Bonferroni):
 # Fisher's exact test on the seeds at the task's maximum at LATE frames (>= SOLVED of 1000: the published
