@@ -12,6 +12,7 @@ DrQ-v2 update timed against this project's drq update in the same process.
     python benchmarks/bench_agent.py --compare-layouts --rounds 3 --updates 2   # channels_last vs NCHW
     python benchmarks/bench_agent.py --compare-compile --official DIR --precisions fp32   # eager vs --compile
     python benchmarks/bench_agent.py --snapshot runs/<run dir> --profile --subnormals     # trained vs fresh
+    python benchmarks/bench_agent.py --snapshot runs/<run dir> --threads 1 --flush-denormal   # + subnormals flushed
 
 Synthetic batches (no rendering) for the update table, so those are the learner's cost alone. Times
 are wall clock at the thread count shown; on a shared machine, compare ratios taken in the same run.
@@ -287,12 +288,15 @@ def compile_comparison(args):
     print(f"## Eager vs --compile{' vs --cuda-graphs' if graphs else ''} (batch {args.batch_size}, "
           f"{torch.get_num_threads()} threads on {args.device}, {args.rounds} alternating rounds x {args.updates} "
           f"updates, median; compile time apart); {load()}\n")
-    header = ("| method | precision | mode | s/update (wall) | CPU s/update | eager / this | official / this | "
-              "compile s |\n|---|---|---|---|---|---|---|---|")
+    # The ratios are of CPU seconds (all threads of this process): on a shared machine wall seconds count
+    # the time other processes hold the cores.
+    head = ("| method | precision | mode | s/update (wall) | CPU s/update | eager / this (CPU) | "
+            "official / this (CPU) | compile s |\n|---|---|---|---|---|---|---|---|")
+    header = head
     for precision in args.precisions:
         for method in args.methods:
             eager = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
-            contenders, compile_s, rows = {"eager": our_update(eager, batch, args.device)}, {}, []
+            contenders, compile_s, rows, compiled = {"eager": our_update(eager, batch, args.device)}, {}, [], {}
             for mode, run in (("compiled", cli.RunConfig(compile=True)),
                               ("compiled + CUDA graphs", cli.RunConfig(compile=True, cuda_graphs=True)))[:1 + graphs]:
                 agent = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
@@ -304,7 +308,7 @@ def compile_comparison(args):
                         agent.update(batch, step)
                     sync(args.device)
                     compile_s[mode] = time.perf_counter() - start
-                    contenders[mode] = our_update(agent, batch, args.device)
+                    contenders[mode], compiled[mode] = our_update(agent, batch, args.device), agent
                 except Exception as e:  # a compiler or graph failure: say it, time the rest
                     rows.append(f"| {method} | {precision} | {mode} | failed: {cli.first_sentence(e)[:150]} | | | | |")
             if args.official and method == "drq" and precision == "fp32":
@@ -313,11 +317,14 @@ def compile_comparison(args):
             official = costs.get("official DrQ-v2")
             for mode, c in costs.items():
                 rows.append(f"| {method} | {precision} | {mode} | {c.wall:.3f} | {c.cpu:.3f} | "
-                            f"{costs['eager'].wall / c.wall:.2f} | "
-                            f"{f'{official.wall / c.wall:.2f}' if official else ''} | "
+                            f"{costs['eager'].cpu / c.cpu:.2f} | "
+                            f"{f'{official.cpu / c.cpu:.2f}' if official else ''} | "
                             f"{f'{compile_s[mode]:.0f}' if mode in compile_s else ''} |")
             print("\n".join([header, *rows] if header else rows), flush=True)  # after dynamo's warnings, if any
             header = None
+            if args.profile and "compiled" in compiled:  # where the compiled update's time goes, op by op
+                profile_ops({"eager": eager, "compiled": compiled["compiled"]}, batch, 5_000, top=25)
+                header = head
             torch._dynamo.reset()  # dynamo caches per function, over agents: the next method's agents start afresh
     print(f"\n{load('(at the end)')}\n")
 
@@ -398,9 +405,12 @@ def snapshot_comparison(args):
     agents, batches, step, cfg, source = run_agents(args)
     print(f"## Trained agent (snapshot at agent step {step} of {args.snapshot}) vs a fresh one\n\n"
           f"{cfg.method}, batch {args.batch_size}, {cfg.precision}, {torch.get_num_threads()} threads, batches from "
-          f"{source}; {args.rounds} alternating rounds x {args.updates} updates, median; {load()}\n")
-    costs = alternate({k: (lambda i, a=a: a.update(batches[i % len(batches)], step)) for k, a in agents.items()},
-                      args.rounds, args.updates, args.warmup)
+          f"{source}; {args.rounds} alternating rounds x {args.updates} updates, median; "
+          f"malloc: {malloc_setting(args)}; {load()}\n")
+    updates = {k: (lambda i, a=a: a.update(batches[i % len(batches)], step)) for k, a in agents.items()}
+    if args.flush_denormal:  # the copied trained agent again, subnormals flushed to 0 while it updates
+        updates["trained, state copied, denormals flushed"] = flushed(updates.pop("trained, state copied"))
+    costs = alternate(updates, args.rounds, args.updates, args.warmup)
     print("| agent | wall s/update | CPU s/update | minor faults/update |\n|---|---|---|---|")
     for name, c in costs.items():
         m = median(c)
@@ -413,6 +423,26 @@ def snapshot_comparison(args):
         profile_ops(pair, batches[0], step)
     if args.subnormals:
         subnormal_table(pair, batches[0], step)
+
+
+def malloc_setting(args) -> str:
+    """How this process's glibc malloc is set: under glibc's default an update takes about 1.5x the
+    CPU time (docs/speed.md, "Allocator")."""
+    if args.allocator == "mallopt":
+        return "mallopt (cli.configure_allocator)"
+    return f"GLIBC_TUNABLES={os.environ['GLIBC_TUNABLES']}" if os.environ.get("GLIBC_TUNABLES") else "glibc's default"
+
+
+def flushed(update):
+    """update(i) with the x86 FTZ/DAZ flags on (torch.set_flush_denormal), off again after it. The flags
+    are per thread: with more than one torch thread the pool's other threads keep subnormals."""
+    def run(i):
+        torch.set_flush_denormal(True)
+        try:
+            update(i)
+        finally:
+            torch.set_flush_denormal(False)
+    return run
 
 
 def profile_ops(agents: dict, batch, step, top=15):
@@ -565,9 +595,14 @@ def main():
     p.add_argument("--snapshot", metavar="RUN_DIR",
                    help="time the run's trained agent against a fresh one on batches of its own buffer, alternating")
     p.add_argument("--batches", type=int, default=4, help="--snapshot: batches drawn from the run's buffer")
-    p.add_argument("--profile", action="store_true", help="--snapshot: per-op CPU times of one update each")
+    p.add_argument("--profile", action="store_true",
+                   help="--snapshot, --compare-compile: per-op CPU times of one update each (trained and fresh; "
+                        "eager and compiled)")
     p.add_argument("--subnormals", action="store_true",
                    help="--snapshot: subnormal floats in one update's outputs, gradients, weights and Adam state")
+    p.add_argument("--flush-denormal", action="store_true",
+                   help="--snapshot: time the copied trained agent with subnormals flushed to 0 "
+                        "(torch.set_flush_denormal; x86; the calling thread's flags: use --threads 1)")
     p.add_argument("--allocator", choices=["mallopt", "none"], default="mallopt",
                    help="mallopt: glibc's malloc as sear.py sets it (cli.configure_allocator); none: leave it")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
