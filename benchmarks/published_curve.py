@@ -170,10 +170,9 @@ def load_official(paths: list[str], task: str) -> dict[int, dict]:
 
 RESULT_FIELDS = ["method", "seed", "task", "frame", "return", "wall_time", "source"]
 SETTINGS = "settings"  # an optional column, written by --record: files recorded before it have none
-# Config fields that change neither what a run learns nor how it is scored: where and how fast it ran, what
-# it kept. Everything else (frames, the rung's flags, the evaluations) must be equal for runs read as one method.
-FREE_SETTINGS = {"seed", "device", "compile", "cuda_graphs", "prefetch", "threads", "run_root", "resume", "evaluate",
-                 "save_buffer", "save_video", "log_every", "snapshot_minutes"}
+# Config fields that change neither what a run learns nor how it is scored: plot.py's NOT_A_SETTING (the one
+# list of them) less the budget and the evaluations, which runs read as one method (a campaign's parts) must share.
+FREE_SETTINGS = plot.NOT_A_SETTING - {"frames", "eval_every", "eval_episodes", "eval_episodes_per_task"}
 AGREE = 0.05  # returns of one run read twice: a results file may hold them rounded to 0.1
 
 
