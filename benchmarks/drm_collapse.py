@@ -53,11 +53,20 @@ def blocks(train: dict[int, dict]) -> dict[int, tuple[float, float, bool]]:
 
 def verdict(block_means: dict, returns: dict[int, float]) -> str:
     """The criterion on a run's blocks and evaluation returns."""
-    if any(sat >= SATURATED for sat, _, complete in block_means.values() if complete):
+    if saturated_blocks(block_means):
         return "NOT PREVENTED"
     if LAST not in returns:
         return "RUNNING"
     return "PREVENTED" if returns[LAST] >= LEARNED else "PREVENTED, TASK NOT LEARNED"
+
+
+def saturated_blocks(block_means: dict) -> list[int]:
+    """The complete blocks that fail (a): their mean actor_saturated >= SATURATED."""
+    return [lo for lo, (sat, _, complete) in block_means.items() if complete and sat >= SATURATED]
+
+
+def span(lo: int) -> str:
+    return f"{lo / 1000:g}k–{(lo + BLOCK) / 1000:g}k"
 
 
 def drq_seed2_returns(results: str) -> dict[int, float]:
@@ -112,10 +121,12 @@ def main(argv=None):
     print("\n| block | drq+drm seed 2: actor_saturated / action_spread | drq seed 2 |\n|---|---|---|")
     for lo in sorted(set(block_means) | set(DRQ_SEED2_BLOCKS)):
         mine = block_means.get(lo)
-        cell = f"{mine[0]:.2f} / {mine[1]:.3g}{'' if mine[2] else ' (running)'}" if mine else ""
+        cell = f"{mine[0]:.3f} / {mine[1]:.3g}{'' if mine[2] else ' (running)'}" if mine else ""
         theirs = DRQ_SEED2_BLOCKS.get(lo)
-        print(f"| {lo / 1000:g}k–{(lo + BLOCK) / 1000:g}k | {cell} | {f'{theirs[0]:.2f} / {theirs[1]:.3g}' if theirs else ''} |")
-    print(f"\nDrM prevents the collapse here: {verdict(block_means, returns)} "
+        print(f"| {span(lo)} | {cell} | {f'{theirs[0]:.2f} / {theirs[1]:.3g}' if theirs else ''} |")
+    why = "; ".join(f"{span(lo)}: mean actor_saturated {block_means[lo][0]:.3f} >= {SATURATED}"
+                    for lo in saturated_blocks(block_means))
+    print(f"\nDoes DrM prevent the collapse here? {verdict(block_means, returns)}{f' ({why})' if why else ''} "
           f"(to frame {max(train, default=0)}; criterion: EXPERIMENTS.md, \"DrM on the collapse case\")")
     if args.out:
         figure(args.out, returns, drq_returns, train, block_means)

@@ -145,7 +145,9 @@ EOF
 jobs=()
 for s in $(seq "$first" "$last"); do jobs+=("drq-$s"); done
 [ $sear = 1 ] && for s in $(seq "$first" "$last"); do jobs+=("sear-$s"); done
-cores=$(nproc)
+# The cores this process may use (its CPU affinity). Not plain `nproc`: it honours OMP_NUM_THREADS, which this
+# script set to 1 above for the runs' other threads, and so counted 1 core on the 16-core machine.
+cores=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)
 # assumed (docs/published-curve.md#the-gpu-campaign); the summary gives the GPU memory the runs used
 gib_per_run=${GIB_PER_RUN:-4}
 slots=$(( ${#jobs[@]} < cores ? ${#jobs[@]} : cores ))

@@ -41,7 +41,9 @@ def test_the_criterion_as_fixed_before_the_result(tmp_path, saturated, returns, 
     got = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "drm_collapse.py"), str(run),
                           "--results", str(results), "--out", str(out)], capture_output=True, text=True)
     assert got.returncode == 0, got.stderr
-    assert f"DrM prevents the collapse here: {want} (" in got.stdout
+    assert f"Does DrM prevent the collapse here? {want} (" in got.stdout
+    # a failed (a) names its block and mean: the margin is part of the verdict
+    assert ("(12k–16k: mean actor_saturated 0.950 >= 0.9)" in got.stdout) == (want == "NOT PREVENTED")
     assert out.read_bytes().startswith(PNG_MAGIC)
 
 

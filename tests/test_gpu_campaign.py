@@ -95,8 +95,9 @@ def test_a_sigterm_to_the_campaign_stops_every_run_it_started(tmp_path, campaign
 
 
 def test_a_part_runs_its_seeds_and_leaves_its_small_files(tmp_path, campaign):
-    """--first-seed 3: seed 3 alone (the other parts run the others); --copy-to gets the part's 4 small
-    files, whose results file the rule on the union of the parts reads; the summary says what comes next."""
+    """--first-seed 3: seed 3 alone (the other parts run the others), with every core the process may use;
+    --copy-to gets the part's 4 small files, whose results file the rule on the union of the parts reads;
+    the summary says what comes next."""
     out, copy = tmp_path / "c", tmp_path / "copy"
     p = campaign("--quick", "--first-seed", 3, "--seeds", 1, "--out", out, "--copy-to", copy)
     stdout, err = p.communicate(timeout=300)
@@ -108,6 +109,8 @@ def test_a_part_runs_its_seeds_and_leaves_its_small_files(tmp_path, campaign):
     assert rows[0].endswith(",settings") and len(rows) == 4 and all(r.startswith("drq,3,") for r in rows[1:])
     summary = (copy / "seeds3-3_summary.md").read_text()
     assert "This part holds seeds 3-3 (1 of the 16 that MATCH needs" in summary
+    cores = len(os.sched_getaffinity(0))  # all of them, though the script sets OMP_NUM_THREADS=1 for its runs
+    assert f"1 at a time, {cores} torch threads each (cores {cores}," in summary and f", {cores} CPU cores," in summary
     assert "`benchmarks/gpu_campaign.sh --first-seed 4 --quick --seeds 1`" in summary
     assert "--results seeds3-3_results.csv --results seeds4-4_results.csv" in summary
     assert "--seeds $(seq 1 16) --frames 0 100 200" in summary
