@@ -290,9 +290,8 @@ def compile_comparison(args):
           f"updates, median; compile time apart); {load()}\n")
     # The ratios are of CPU seconds (all threads of this process): on a shared machine wall seconds count
     # the time other processes hold the cores.
-    head = ("| method | precision | mode | s/update (wall) | CPU s/update | eager / this (CPU) | "
-            "official / this (CPU) | compile s |\n|---|---|---|---|---|---|---|---|")
-    header = head
+    header = head = ("| method | precision | mode | s/update (wall) | CPU s/update | eager / this (CPU) | "
+                     "official / this (CPU) | compile s |\n|---|---|---|---|---|---|---|---|")
     for precision in args.precisions:
         for method in args.methods:
             eager = make_agent(method, precision, args.batch_size, args.device, args.action_dim)

@@ -13,9 +13,13 @@ Errors are one line on stderr, exit code 2.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path[:0] = [HERE, os.path.dirname(HERE)]
+import plot  # noqa: E402
+import published_curve  # noqa: E402
 
 BLOCK, FIRST, LAST = 4000, 4000, 40000
 SATURATED, LEARNED = 0.9, 900.0
@@ -29,12 +33,24 @@ def fail(message):
     sys.exit(2)
 
 
-def read_rows(path):
-    """A run CSV's rows by frame, the last row of a frame repeated by a resume winning."""
-    if not os.path.isfile(path):
-        fail(f"'{path}' does not exist (give a run directory of sear.py)")
-    with open(path) as f:
-        return {int(r["frame"]): r for r in csv.DictReader(f)}
+TASK = "cartpole_balance_sparse"
+COLUMNS = ("return", "actor_saturated", "action_spread", "dormant_ratio", "expl_std", "drm_lambda")
+
+
+def read_train(run_dir: str) -> dict[int, dict[str, float]]:
+    """{frame: {column: value}} of train.csv's COLUMNS that have a value there (plot.load_run: a frame
+    repeated by a resume keeps its last row)."""
+    rows = {}
+    for column in COLUMNS:
+        try:
+            run = plot.load_run(run_dir, "train", column)
+        except plot.NoLogYet:
+            raise
+        except plot.PlotError:  # a column without values yet (no update before the seed phase ends)
+            continue
+        for f, v in zip(run["frames"], run["values"]):
+            rows.setdefault(int(f), {})[column] = float(v)
+    return rows
 
 
 def blocks(train: dict[int, dict]) -> dict[int, tuple[float, float, bool]]:
@@ -43,10 +59,10 @@ def blocks(train: dict[int, dict]) -> dict[int, tuple[float, float, bool]]:
     last = max(train, default=0)
     out = {}
     for lo in range(FIRST, LAST, BLOCK):
-        rows = [r for f, r in train.items() if lo <= f - 1 < lo + BLOCK and r.get("actor_saturated")]
+        rows = [r for f, r in train.items() if lo <= f - 1 < lo + BLOCK and "actor_saturated" in r]
         if rows:
-            sat = sum(float(r["actor_saturated"]) for r in rows) / len(rows)
-            spread = sum(float(r["action_spread"]) for r in rows) / len(rows)
+            sat = sum(r["actor_saturated"] for r in rows) / len(rows)
+            spread = sum(r["action_spread"] for r in rows) / len(rows)
             out[lo] = (sat, spread, last >= lo + BLOCK)
     return out
 
@@ -70,11 +86,10 @@ def span(lo: int) -> str:
 
 
 def drq_seed2_returns(results: str) -> dict[int, float]:
-    if not os.path.isfile(results):
-        fail(f"'{results}' does not exist (the rung's results file)")
-    with open(results) as f:
-        return {int(r["frame"]): float(r["return"]) for r in csv.DictReader(f)
-                if r["method"] == "drq" and r["seed"] == "2"}
+    run = published_curve.load_results(results, TASK).get("drq", {}).get(2)
+    if run is None:
+        fail(f"{results}: no evaluations of drq seed 2 on {TASK}")
+    return {int(f): float(v) for f, v in zip(run["frames"], run["values"])}
 
 
 def figure(path, returns, drq_returns, train, block_means):
@@ -93,9 +108,9 @@ def figure(path, returns, drq_returns, train, block_means):
                    label="drq seed 2 (recorded)")
         ax[k].set(title=f"{name}, mean per 4k frames")
     ax[1].axhline(SATURATED, color="grey", lw=0.8, ls=":")
-    frames = [f for f, r in train.items() if r.get("dormant_ratio")]
+    frames = [f for f, r in train.items() if "dormant_ratio" in r]
     for name in ("dormant_ratio", "expl_std", "drm_lambda"):
-        ax[3].plot(frames, [float(train[f][name]) for f in frames], label=name)
+        ax[3].plot(frames, [train[f][name] for f in frames], label=name)
     ax[3].set(title="DrM: dormant ratio, std, lambda")
     for a in ax:
         a.set_xlabel("frames")
@@ -111,9 +126,13 @@ def main(argv=None):
     p.add_argument("--results", default="benchmarks/published_curve_results.csv", help="DrQ seed 2's returns")
     p.add_argument("--out", help="write the figure here (PNG)")
     args = p.parse_args(argv)
-    train = read_rows(os.path.join(args.run_dir, "train.csv"))
-    returns = {f: float(r["return"]) for f, r in sorted(read_rows(os.path.join(args.run_dir, "eval.csv")).items())}
-    drq_returns = drq_seed2_returns(args.results)
+    try:
+        train = read_train(args.run_dir)
+        run = plot.load_run(args.run_dir, "eval")
+        drq_returns = drq_seed2_returns(args.results)
+    except (plot.PlotError, published_curve.CurveError) as e:
+        fail(f"{args.run_dir}: {e}" if isinstance(e, plot.NoLogYet) else str(e))
+    returns = {int(f): float(v) for f, v in zip(run["frames"], run["values"])}
     block_means = blocks(train)
     print("| frames | drq+drm seed 2 | drq seed 2 |\n|---|---|---|")
     for f in sorted(set(returns) | set(drq_returns)):

@@ -21,6 +21,7 @@ def write_run(tmp_path, saturated, returns, last=40000):
     rows = ["frame,return,actor_saturated,action_spread,dormant_ratio,expl_std,drm_lambda"]
     rows += [f"{f},10,{saturated(f)},0.5,0.1,0.9,0.5" for f in range(5000, last + 1, 1000)]
     (run / "train.csv").write_text("\n".join(rows) + "\n")
+    (run / "config.json").write_text("{}")
     (run / "eval.csv").write_text("frame,return\n" + "".join(f"{f},{r}\n" for f, r in returns.items()))
     results = tmp_path / "results.csv"
     results.write_text("method,seed,task,frame,return,wall_time,source\n"
@@ -48,7 +49,7 @@ def test_the_criterion_as_fixed_before_the_result(tmp_path, saturated, returns, 
 
 
 def test_blocks_place_an_episode_in_the_block_it_ran_in():
-    train = {f: {"actor_saturated": str(f / 100000), "action_spread": "0.5"} for f in range(5000, 13001, 1000)}
+    train = {f: {"actor_saturated": f / 100000, "action_spread": 0.5} for f in range(5000, 13001, 1000)}
     b = drm_collapse.blocks(train)
     assert sorted(b) == [4000, 8000, 12000]
     assert b[8000][0] == pytest.approx(sum(f / 100000 for f in range(9000, 13000, 1000)) / 4)  # 9k..12k: 8k-12k
