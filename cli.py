@@ -42,13 +42,16 @@ class RunConfig:
     logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt, all but the
     fields marked saved=False (--evaluate: a command, not a setting of the run)."""
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
-    compile: bool = arg(False, "the update through torch.compile (inductor): both losses, forward and backward, and "
-                               "both Adam steps; equal to eager within rounding. The first update compiles (minutes "
-                               "on a CPU); docs/speed.md has its speed")
-    cuda_graphs: bool = arg(False, "with --compile on CUDA: replay the compiled update as CUDA graphs (torch.compile's "
-                                   "mode reduce-overhead)")
-    prefetch: str = arg("auto", "auto (on with CUDA) | on | off: sample and copy the next batch in a "
-                                "background thread while the current update runs", ("auto", "on", "off"))
+    compile: bool = arg(False, "the whole update through torch.compile as one graph, replayed as a CUDA graph on "
+                               "CUDA; equal to eager within rounding. The first update compiles (minutes on a CPU); "
+                               "docs/speed.md has its speed")
+    tf32: bool = arg(False, "CUDA: TF32 in float32 convolutions and matmuls (Ampere and newer: faster, ~3 fewer "
+                            "significant digits); off: the reference arithmetic (DrQ-v2's curves ran on V100s, which "
+                            "have none)")
+    replay_device: str = arg("auto", "where the replay ring lives: auto (the run's GPU when it fits there, else the "
+                                     "host) | cpu | the run's device")
+    prefetch: str = arg("auto", "auto (on with CUDA and a replay on the host) | on | off: sample and copy the next "
+                                "batch in a background thread while the current update runs", ("auto", "on", "off"))
     threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. "
                           "Several runs on one machine: give each cores / runs")
     run_root: str = arg("runs", "folder that holds run directories")
@@ -295,11 +298,12 @@ def flag(name: str) -> str:
 
 def field_groups(Config) -> list:
     """[(title, defaults, fields)] of the flags: Config's own fields, those of each dataclass it inherits
-    (drm.DrMConfig), then RunConfig's."""
+    (sear.Config, drm.DrMConfig, ...), then RunConfig's."""
     groups = []
     for cls in (c for c in Config.__mro__ if dataclasses.is_dataclass(c)):
         own = cls.__dict__.get("__annotations__", {})
-        title = f"the experiment ({'sear' if cls is Config else cls.__module__}.py {cls.__name__})"
+        module = "train" if cls.__module__ == "__main__" else cls.__module__  # `python sear.py` runs train.py so
+        title = f"the experiment ({module}.py {cls.__name__})"
         groups.append((title, cls(), [f for f in dataclasses.fields(cls) if f.name in own]))
     return groups + [("the run (cli.py RunConfig)", RunConfig(), list(dataclasses.fields(RunConfig)))]
 
@@ -401,11 +405,6 @@ def validate(cfg, run: RunConfig, methods: dict) -> None:
     if cfg.drm_min_perturb > cfg.drm_max_perturb:
         raise ConfigError(f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
                           f"({cfg.drm_max_perturb})")
-    if run.cuda_graphs and not run.compile:
-        raise ConfigError("--cuda-graphs needs --compile (it replays the compiled update)")
-    if run.compile and cfg.drm:
-        raise ConfigError("--compile does not take --drm: DrM sets each update's std and lambda from the actor's "
-                          "dormant ratio in Python, which a compiled update would recompile for")
     if cfg.latent_dim % 2:
         raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
     if 84 % cfg.mae_patch:
@@ -616,7 +615,7 @@ def inherit_from_source(cfg, run: RunConfig, explicit: set, Config) -> set:
 
 
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
-                     "save_video", "compile", "cuda_graphs"}
+                     "save_video", "compile", "replay_device", "tf32", "prefetch"}
 # --evaluate scores the run as it is: only how many episodes, whether to film, and where to compute.
 EVALUATE_MAY_SET = {"evaluate", "eval_episodes", "eval_episodes_per_task", "save_video", "device", "threads"}
 
@@ -873,13 +872,25 @@ def torch_setup(run: RunConfig):
             raise ConfigError(f"--device: unknown device '{run.device}'")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"--device {run.device}: CUDA is not available on this machine")
-    if run.cuda_graphs and device.type != "cuda":
-        raise ConfigError(f"--cuda-graphs needs a CUDA device; this run's is {device}")
+    if run.replay_device not in ("auto", "cpu") and torch.device(run.replay_device) != device:
+        raise ConfigError(f"--replay-device must be auto, cpu or the run's device ({device}), got '{run.replay_device}'")
+    set_tf32(run.tf32)
     if run.compile and device.type == "cpu" and not cxx_compiler():
         raise ConfigError("--compile on the CPU needs a C++ compiler (inductor builds its kernels with one): no "
                           "g++, c++ or clang++ found; install one or leave --compile off")
     torch.set_num_threads(torch_threads(run))
     return device
+
+
+def set_tf32(on: bool) -> None:
+    """TF32 in CUDA's float32 convolutions and matmuls, on or off (torch turns it on for cuDNN's
+    convolutions by default)."""
+    import torch
+    precision = "tf32" if on else "ieee"
+    if hasattr(torch.backends.cudnn, "conv") and hasattr(torch.backends.cudnn.conv, "fp32_precision"):
+        torch.backends.cuda.matmul.fp32_precision = torch.backends.cudnn.conv.fp32_precision = precision
+    else:  # torch before 2.9
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
 
 
 def cxx_compiler() -> str | None:

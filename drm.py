@@ -12,11 +12,10 @@ batch) and lets it drive three things:
   * every --drm-perturb-every agent steps, shrink-and-perturb: every Linear layer becomes a mix of
     itself and a fresh initialisation, by a factor that falls as the ratio rises; Adam's state resets.
 
-The seam: sear.Agent builds one DrM when cfg.drm is on and calls it from four places (`self.drm` in
-sear.py): `std` (the exploration std), `observe` (before the critic's step: the ratio and V's step),
-`blend` (the critic's target) and `perturb_if_due` (at the start of an update); its `state_dict` goes
-into the agent's. Nothing here imports sear.py (it runs as __main__): the agent hands over the
-building blocks DrM needs (its linear std schedule, weight init, trunk and MLP).
+The seam: `DrMAgent` is sear.Agent with four of its methods overridden: `std` (the exploration std),
+`joint_loss` (before Eq. 6, the ratio and V's step on the batch's latent), `next_value` (the critic's
+target) and `update` (shrink-and-perturb at an update's start); its `state_dict` adds DrM's state.
+train.py builds it for --drm.
 """
 from __future__ import annotations
 
@@ -27,7 +26,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn as nn
 
-from cli import arg
+import sear
+from sear import arg
 
 # What an update adds to train.csv: the actor's dormant ratio, the exploration std and the target's
 # lambda of the update, V's expectile loss, and the factor of a perturbation (empty in episodes without).
@@ -36,7 +36,7 @@ METRICS = ("dormant_ratio", "expl_std", "drm_lambda", "value_loss", "perturb_fac
 
 @dataclass
 class DrMConfig:
-    """DrM's flags (sear.Config inherits them). Defaults: the released code's cfgs/agent/drm.yaml, and
+    """DrM's flags (train.Config adds them to the run's). Defaults: the released code's cfgs/agent/drm.yaml, and
     for what it leaves to the task cfgs, the value of its dm_control tasks (cfgs/task/*.yaml)."""
     drm: bool = arg(False, "DrM on top of --method (docs/drm.md): dormant-ratio-driven exploration std, "
                            "expectile value blended into the critic's target, periodic shrink-and-perturb")
@@ -59,35 +59,28 @@ class DrMConfig:
     drm_expectile: float = arg(0.9, "DrM: expectile of V's asymmetric squared loss on min(Q1, Q2) (expectile)")
 
 
-def sigmoid(x: float) -> float:
-    """1 / (1 + exp(-x)), as DrM's code writes it, without overflowing for very negative x."""
-    return 1 / (1 + math.exp(min(-x, 700.0)))
-
-
-def dormant_ratio(net: nn.Module, *inputs, threshold: float) -> float:
-    """DrM's dormant ratio (utils.cal_dormant_ratio): one forward pass of `net`, and for every Linear
+def dormant_ratio(actor: nn.Module, latent: torch.Tensor, threshold: float) -> torch.Tensor:
+    """DrM's dormant ratio (utils.cal_dormant_ratio) of the actor on a batch of latents: for every Linear
     layer the mean |output| of each neuron over the batch; a neuron is dormant when that is below
-    `threshold` x the layer's mean. Returns dormant neurons / all neurons of the Linear layers.
+    `threshold` x the layer's mean. Returns dormant neurons / all neurons of the Linear layers, as a
+    float64 0-d tensor on the device (no host sync).
 
-    The outputs are read after the whole pass, as DrM's forward hooks hold them: a Linear layer
-    followed by an in-place ReLU (the actor's hidden layers) is scored on its ReLU activation, as the
-    paper defines a neuron's score; the trunk's layer (before its LayerNorm) and the output layer
-    (before tanh) on what they compute."""
-    outputs = []
-    hooks = [m.register_forward_hook(lambda m, inp, out: outputs.append(out))
-             for m in net.modules() if isinstance(m, nn.Linear)]
-    try:
-        with torch.no_grad():
-            net(*inputs)
-    finally:
-        for h in hooks:
-            h.remove()
+    The actor is a chain of layers (trunk, then policy: sear.Actor), walked here in order, as DrM's
+    forward hooks see its pass: a Linear layer followed by an in-place ReLU (the hidden layers) is scored
+    on its ReLU activation, as the paper defines a neuron's score; the trunk's layer (before its
+    LayerNorm) and the output layer (before tanh) on what they compute."""
+    outputs, x = [], latent
+    with torch.no_grad():
+        for layer in (m for m in actor.modules() if not list(m.children())):
+            x = layer(x)
+            if isinstance(layer, nn.Linear):
+                outputs.append(x)
     dormant = []
     for out in outputs:
         score = out.abs().mean(0)
         dormant.append((score < score.mean() * threshold).sum())
     total = sum(out.shape[-1] for out in outputs)
-    return int(torch.stack(dormant).sum()) / total  # one device sync
+    return torch.stack(dormant).sum().double() / total
 
 
 def shrink_and_perturb(net: nn.Module, factor: float, init) -> None:
@@ -111,95 +104,114 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     return (weight * diff ** 2).mean()
 
 
-class DrM:
-    """DrM's state and machinery for one sear.Agent: the value network V and its optimiser, the
-    actor's latest dormant ratio, the step at which the actor first woke up, and this update's perturbation."""
+class DrMAgent(sear.Agent):
+    """sear.Agent with DrM: the value network V and its optimiser, the actor's latest dormant ratio and
+    the step at which the actor first woke up (float64 0-d tensors on the device: the update reads and
+    writes them without a host sync; NaN: not yet awake)."""
 
-    def __init__(self, cfg, agent, schedule, init, trunk, mlp):
-        """cfg: sear.Config; agent: the sear.Agent whose networks and optimisers DrM perturbs;
-        schedule(cfg, step): DrQ-v2's linear std; init: the weight init; trunk, mlp: the layers V is
-        made of (DrM's VNetwork: the actor's trunk and an MLP to one output)."""
-        self.cfg, self.agent, self.schedule, self.init = cfg, agent, schedule, init
+    def __init__(self, cfg, action_dim: int, device: torch.device):
+        super().__init__(cfg, action_dim, device)
         # V's initial weights come from a fork of the torch RNG: the run's own stream is left as the
         # same seed without --drm has it (same initial networks, same first actions).
         with torch.random.fork_rng(devices=[]):
-            self.value = nn.Sequential(trunk(agent.encoder.repr_dim, cfg.feature_dim),
-                                       mlp(cfg.feature_dim, cfg.hidden_dim, 1)).apply(init)
-        self.value.to(agent.device)
-        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=cfg.lr)
-        self.ratio = 1.0          # DrM's initial dormant ratio: std ~1 and lambda ~0 until the first update
-        self.awaken_step = None   # the first update after the uniform steps with ratio < target
-        self.factor = None        # this update's perturbation, for its metrics
+            self.value = nn.Sequential(sear.trunk(self.encoder.repr_dim, cfg.feature_dim),
+                                       sear.mlp(cfg.feature_dim, cfg.hidden_dim, 1)).apply(sear.weight_init)
+        self.value.to(device)
+        self.value_opt = sear.Adam(self.value.parameters(), lr=cfg.lr)
+        # The actor's dormant ratio and the step it woke up at (NaN: not yet), updated in place by the
+        # update (a compiled one reads and writes them at fixed addresses). DrM's start: std ~1, lambda ~0.
+        self.state = torch.tensor([1.0, math.nan], dtype=torch.float64, device=device)
+        self.metric_names += METRICS
 
-    # --- what the agent asks ---
-    def std(self, step: int) -> float:
+    ratio = property(lambda self: self.state[0], lambda self, value: self.state[0].copy_(self.scalar(value)))
+    awaken_step = property(lambda self: self.state[1], lambda self, value: self.state[1].copy_(self.scalar(value)))
+
+    @property
+    def awake_at(self) -> int | None:
+        """The agent step at which the actor woke up, None before (a host sync: for logs and tests)."""
+        step = float(self.awaken_step)
+        return None if math.isnan(step) else int(step)
+
+    def scalar(self, value) -> torch.Tensor:
+        """A float64 0-d tensor on the device (a step or a ratio given as a number, None as NaN)."""
+        return torch.as_tensor(math.nan if value is None else value, dtype=torch.float64, device=self.device)
+
+    def std(self, step):
         """Awaken exploration (DrM's stddev_type "awake"): sigmoid(temp x (ratio - target)) while the
         actor is dormant; once awake, the larger of that and DrQ-v2's schedule counted from the
         awakening."""
-        dormant = sigmoid(self.cfg.drm_dormant_temp * (self.ratio - self.cfg.drm_target_ratio))
-        if self.awaken_step is None:
-            return dormant
-        return max(dormant, self.schedule(self.cfg, step - self.awaken_step))
+        cfg, awaken = self.cfg, self.awaken_step
+        dormant = 1 / (1 + torch.exp(-cfg.drm_dormant_temp * (self.ratio - cfg.drm_target_ratio)))
+        return torch.where(awaken.isnan(), dormant, torch.maximum(dormant, sear.linear_std(cfg, step - awaken)))
 
     @property
-    def lam(self) -> float:
+    def lam(self) -> torch.Tensor:
         """The exploitation weight: drm_lambda / (1 + exp(temp x (ratio - target)))."""
         cfg = self.cfg
-        return cfg.drm_lambda / (1 + math.exp(min(cfg.drm_lambda_temp * (self.ratio - cfg.drm_target_ratio), 700.0)))
+        return cfg.drm_lambda / (1 + torch.exp(cfg.drm_lambda_temp * (self.ratio - cfg.drm_target_ratio)))
 
-    def observe(self, latent: torch.Tensor, action: torch.Tensor, step: int) -> dict:
-        """Before the critic's step, on the batch's (detached) latent: the actor's dormant ratio, which
-        sets this update's std and lambda; the awakening; one expectile step of V towards the critic's
-        min(Q1, Q2) of the batch's actions (DrM's update_predictor, before update_critic). Returns the
-        update's DrM metrics."""
+    def joint_loss(self, latent, obs_aug, mask_aug, batch, step):
+        """Before the critic's loss (DrM's update_predictor comes before its update_critic), on the
+        batch's detached latent: the actor's dormant ratio, which sets this update's std and lambda,
+        and V's step; then Eq. 6."""
+        metrics = self.observe(latent.detach(), batch.action, step)
+        loss, terms = super().joint_loss(latent, obs_aug, mask_aug, batch, step)
+        return loss, {**terms, **metrics}
+
+    def observe(self, latent: torch.Tensor, action: torch.Tensor, step) -> dict:
+        """The actor's dormant ratio; the awakening (the first update after the uniform steps with the
+        ratio below its target); one expectile step of V towards the critic's min(Q1, Q2) of the
+        batch's actions. Returns the update's DrM metrics."""
         cfg = self.cfg
-        self.ratio = dormant_ratio(self.agent.actor, latent, 0.0, threshold=cfg.drm_dormant_threshold)
-        if self.awaken_step is None and step > cfg.exploration_steps and self.ratio < cfg.drm_target_ratio:
-            self.awaken_step = step
+        self.ratio = dormant_ratio(self.actor, latent, threshold=cfg.drm_dormant_threshold)
+        step = self.scalar(step)
+        wakes = self.awaken_step.isnan() & (step > cfg.exploration_steps) & (self.ratio < cfg.drm_target_ratio)
+        self.awaken_step = torch.where(wakes, step, self.awaken_step)
         with torch.no_grad():
-            q = torch.min(*self.agent.critic(latent, action))
+            q = torch.min(*self.critic(latent, action))
         value_loss = expectile_loss(self.value(latent) - q, cfg.drm_expectile)
-        self.value_opt.zero_grad(set_to_none=True)
-        value_loss.backward()
-        self.value_opt.step()
-        metrics = {"dormant_ratio": self.ratio, "expl_std": self.std(step), "drm_lambda": self.lam,
-                   "value_loss": value_loss.item()}
-        if self.factor is not None:
-            metrics["perturb_factor"], self.factor = self.factor, None
-        return metrics
+        self.value_opt.step(torch.autograd.grad(value_loss, self.value_opt.params))
+        return {"dormant_ratio": self.ratio.clone(), "expl_std": self.std(step), "drm_lambda": self.lam,
+                "value_loss": value_loss.detach()}
 
-    def blend(self, next_latent: torch.Tensor, target_v: torch.Tensor) -> torch.Tensor:
+    def next_value(self, next_latent, step):
         """The critic's bootstrap value: lambda x V(s') + (1 - lambda) x min(Q1', Q2')."""
         lam = self.lam
-        return lam * self.value(next_latent) + (1 - lam) * target_v
+        return lam * self.value(next_latent) + (1 - lam) * super().next_value(next_latent, step)
 
-    def perturb_factor(self) -> float:
+    def perturb_factor(self) -> torch.Tensor:
         """How much of each Linear layer a perturbation keeps: clip(1 - rate x ratio, min, max)."""
         cfg = self.cfg
-        return min(max(cfg.drm_min_perturb, 1 - cfg.drm_perturb_rate * self.ratio), cfg.drm_max_perturb)
+        return (1 - cfg.drm_perturb_rate * self.ratio).clamp(cfg.drm_min_perturb, cfg.drm_max_perturb)
 
-    def perturb_if_due(self, step: int) -> None:
+    def perturb_if_due(self, step: int) -> torch.Tensor | None:
         """At the start of an update whose step is a multiple of --drm-perturb-every: shrink-and-perturb
         actor, critic, target critic, encoder and V by perturb_factor() (in DrM's order: the noise is drawn
         from the torch RNG in that order), and forget those parameters' Adam moments. An auxiliary loss's
-        decoders are not DrM's: they keep their weights and their moments."""
+        decoders are not DrM's: they keep their weights and their moments. Returns the factor, if it did."""
         if step % self.cfg.drm_perturb_every:
-            return
-        a, self.factor = self.agent, self.perturb_factor()
-        for net in (a.actor, a.critic, a.critic_target, a.encoder, self.value):
-            shrink_and_perturb(net, self.factor, self.init)
-        for opt, nets in ((a.model_opt, (a.encoder, a.critic)), (a.actor_opt, (a.actor,)),
+            return None
+        factor = self.perturb_factor()
+        for net in (self.actor, self.critic, self.critic_target, self.encoder, self.value):
+            shrink_and_perturb(net, factor, sear.weight_init)
+        for opt, nets in ((self.model_opt, (self.encoder, self.critic)), (self.actor_opt, (self.actor,)),
                           (self.value_opt, (self.value,))):
-            for net in nets:
-                for p in net.parameters():
-                    opt.state.pop(p, None)
+            opt.reset([p for net in nets for p in net.parameters()])
+        return factor
 
-    # --- snapshots ---
+    def update(self, batch, step):
+        factor = self.perturb_if_due(step)  # outside learn(): it re-initialises networks, rarely
+        metrics = super().update(batch, step)
+        return metrics if factor is None else {**metrics, "perturb_factor": factor}
+
+    # --- snapshots: DrM's state beside the agent's ---
     def state_dict(self) -> dict:
-        return {"value": self.value.state_dict(), "value_opt": self.value_opt.state_dict(), "ratio": self.ratio,
-                "awaken_step": self.awaken_step}
+        return {**super().state_dict(), "drm": {"value": self.value.state_dict(), "value_opt": self.value_opt.state_dict(),
+                                                "ratio": float(self.ratio), "awaken_step": self.awake_at}}
 
     def load_state_dict(self, state: dict) -> None:
-        self.value.load_state_dict(state["value"])
-        self.value_opt.load_state_dict(state["value_opt"])
-        self.ratio, self.awaken_step = state["ratio"], state["awaken_step"]
+        super().load_state_dict(state)
+        drm = state["drm"]
+        self.value.load_state_dict(drm["value"])
+        self.value_opt.load_state_dict(drm["value_opt"])
+        self.ratio, self.awaken_step = drm["ratio"], drm["awaken_step"]

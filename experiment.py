@@ -99,6 +99,9 @@ def other_robot_warning(cfg, meta: dict) -> str | None:
             f"{cfg.env}'s robot is {here}: its masks will miss the robot (eval.csv learned_mask_iou shows how far)")
 
 
+EVAL_SEED = 100_000  # the eval env's seed and its episodes' reset seeds are the run's seed + this: apart from training's
+
+
 def make_envs(cfg, uses_mask: bool, train=True):
     """The train (None with train=False) and the eval env; sets cfg.action_repeat 0 to the suite's
     default. `uses_mask`: the method trains on (or acts on) the robot mask. With a learned mask
@@ -134,7 +137,7 @@ def make_run_env(cfg, split: str, render_mask: bool, mask_model=None, **override
                   kitchen_camera=cfg.kitchen_camera, mask_model=mask_model, pole_inertia=cfg.pole_inertia) | overrides
     # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
     # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
-    seed = cfg.seed + (100_000 if split == "eval" else 0)
+    seed = cfg.seed + (EVAL_SEED if split == "eval" else 0)
     try:
         env = envs.make_env(cfg.env, seed=seed, split=split, variation_seed=cfg.seed, **kwargs)
     except envs.EnvError as e:
@@ -413,45 +416,31 @@ def rate_ci(values) -> str:
 
 
 # ================================================================================================
-# --compile: the update through torch.compile
+# The replay buffer: where it lives, its sampler thread and its file
 # ================================================================================================
-def compile_update(agent, run) -> None:
-    """--compile, in place on this agent: its two loss functions (Eq. 6's joint_loss, forward and, through
-    AOTAutograd, backward; the actor's loss) and both Adam steps through torch.compile (inductor's fused
-    kernels), the pattern of LeanRL (pytorch-labs/LeanRL); --cuda-graphs adds CUDA graphs (mode
-    reduce-overhead). The Agent's methods stay the eager reference (tests/test_compile.py holds the two
-    equal); the calls between them (zero_grad, backward, the critic's freeze, Polyak averaging, the logs'
-    one sync) stay eager. Compiling happens at the first update."""
-    if not run.compile:
-        return
-    import torch._inductor.config
-    # Inductor would draw the shifts and the exploration noise from its own generator; its eager
-    # fallbacks draw eager's numbers, so a compiled run samples what an eager one samples.
-    torch._inductor.config.fallback_random = True
-    try:  # the agent step (the noise schedule's) varies: compile for any step, not first for one
-        torch.compiler.config.dynamic_sources = "L['step']"
-    except AttributeError:  # an older torch: dynamo compiles once more at the second step
-        pass
-    mode = "reduce-overhead" if run.cuda_graphs else None
-    agent.joint_loss = torch.compile(agent.joint_loss, mode=mode)
-    agent.actor_loss = torch.compile(agent.actor_loss, mode=mode)
-    for opt in (agent.model_opt, agent.actor_opt):
-        opt.step = torch.compile(opt.step, mode=mode)
-    if run.cuda_graphs:
-        update = agent.update
-
-        def update_step(batch, step):  # a new step: CUDA graph trees may reuse the last step's outputs
-            torch.compiler.cudagraph_mark_step_begin()
-            return update(batch, step)
-        agent.update = update_step
+GPU_HEADROOM = 10 * 2**30  # GPU memory left to the updates beside a replay there (SEAR at batch 256 and more)
 
 
-# ================================================================================================
-# The replay buffer's sampler thread and its file
-# ================================================================================================
+def replay_device(run, device: torch.device, replay_bytes: int) -> torch.device:
+    """--replay-device: where the replay ring lives. auto: on the run's GPU when the whole ring fits in its
+    free memory with GPU_HEADROOM to spare (batches are then built there), else on the host (one line says
+    why, on a GPU); cpu, or the run's device, as given."""
+    if run.replay_device != "auto":
+        return torch.device(run.replay_device)
+    if device.type != "cuda":
+        return torch.device("cpu")
+    free, _ = torch.cuda.mem_get_info(device)
+    if replay_bytes + GPU_HEADROOM <= free:
+        return device
+    print(f"replay: {size(replay_bytes)} does not fit on {device} ({size(free)} free, {size(GPU_HEADROOM)} kept for "
+          f"the updates): on the host, each batch copied over (--replay-device cpu says so quietly)")
+    return torch.device("cpu")
+
+
 def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device):
-    """The background sampler of --prefetch (on by default with CUDA), or None: the loop samples."""
-    if run.prefetch == "on" or (run.prefetch == "auto" and device.type == "cuda"):
+    """The background sampler of --prefetch (on by default when a CUDA run keeps its replay on the
+    host), or None: the loop samples."""
+    if run.prefetch == "on" or (run.prefetch == "auto" and device.type == "cuda" and buffer.device.type == "cpu"):
         # While the thread reads a batch, the loop writes up to 2 x update_every steps and a reset over
         # the oldest slots of a full ring: episodes starting there are not drawn.
         return Prefetcher(buffer, cfg.batch_size, rng, device, margin=cfg.frame_stack + 2 * cfg.update_every)
@@ -460,27 +449,27 @@ def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device)
 
 class Prefetcher:
     """Replay sampling and the host->device copy of the next batch, in a background thread while the
-    current update runs (--prefetch; on by default with CUDA, where the update would otherwise wait
-    for the host). Ahead of the loop: a batch is drawn two updates before it is used (an episode that
-    ends reaches the batches 2 x update_every steps later than without it), and the sampling RNG runs
-    ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
+    current update runs (--prefetch; on by default with CUDA and a replay on the host, where the update
+    would otherwise wait for the host). Ahead of the loop: a batch is drawn two updates before it is used
+    (an episode that ends reaches the batches 2 x update_every steps later than without it), and the
+    sampling RNG runs ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
 
     def __init__(self, buffer, batch_size: int, rng: np.random.Generator, device: torch.device, margin: int):
         self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
-        buffer.margin = margin  # the loop's buffer.can_sample() then asks what this thread can draw
         self.queue: queue.Queue = queue.Queue(maxsize=1)
         self.stop = threading.Event()
         self.thread = None
         self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
 
+    def can_sample(self):
+        """What the loop asks before an update: an episode this thread can draw (the `margin` oldest slots
+        of the ring, which the loop may overwrite while this thread reads, left out)."""
+        return self.buffer.can_sample(self.margin)
+
     def sample(self):
-        """buffer.sample(): only finished episodes, none starting in the `margin` oldest slots of the
-        ring (the loop may overwrite those while this thread reads; it never writes into a finished
-        episode otherwise). None while no episode can be drawn: in a ring of about two episodes the
-        loop may have overwritten the only one; the loop's next can_sample() waits for the next."""
-        b = self.buffer
-        lo = max(0, b.t - b.capacity + self.margin)  # fixed here: the episodes drawable from lo only grow
-        return b.transitions(b.draw_starts(self.batch_size, self.rng, lo)) if len(b.drawable(lo)) else None
+        """buffer.sample() without the `margin` oldest slots; None while no episode can be drawn (in a ring
+        of about two episodes the loop may have overwritten the only one: the loop's next can_sample() waits)."""
+        return self.buffer.sample(self.batch_size, self.rng, self.margin)
 
     def _produce(self):
         while not self.stop.is_set():
@@ -489,7 +478,6 @@ class Prefetcher:
                 if batch is None:
                     self.stop.wait(0.001)
                     continue
-                batch = type(batch)._make(torch.as_tensor(x) for x in batch)
                 event = None
                 if self.stream is not None:
                     with torch.cuda.stream(self.stream):
@@ -525,15 +513,10 @@ class Prefetcher:
             self.thread.join(timeout=0.05)
 
 
-BUFFER_ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
-
-
 def save_buffer(buffer, path):
     """buffer.npz: the filled slots of the ring in physical order, and `t` (the episode index follows
     from the `first` flags)."""
-    n = len(buffer)
-    write_atomically(path, lambda f: np.savez(f, t=buffer.t, **{name: getattr(buffer, name)[:n]
-                                                                 for name in BUFFER_ARRAYS}))
+    write_atomically(path, lambda f: np.savez(f, **buffer.arrays()))
 
 
 def load_buffer(buffer, path):
@@ -541,10 +524,7 @@ def load_buffer(buffer, path):
         n = len(data["rewards"])
         if n > buffer.capacity:
             raise cli.ConfigError(f"saved buffer holds {n} transitions, more than --replay-size {buffer.capacity}")
-        for name in BUFFER_ARRAYS:
-            getattr(buffer, name)[:n] = data[name]
-        buffer.t = int(data["t"])  # a wrapped ring is saved in physical order: same slots here
-    buffer.index_episodes()  # the finished episodes, as the saving run had them
+        buffer.load_arrays(data)
 
 
 def saved_buffer_t(path):
@@ -1000,7 +980,8 @@ class RunDir:
         self.path = run.resume or None  # a new run's is made by create(): removed if it ends before a snapshot
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
         self.counters = None  # the loop's, from start()
-        self.metrics = {}  # the updates' metrics of the episode under way
+        self.pending = []  # the updates' metrics not read from the device yet
+        self.metrics = {}  # the updates' metrics of the episode under way, read
         self.lock = None
 
     @property
@@ -1056,7 +1037,7 @@ class RunDir:
         self.writer = tensorboard_writer(self.path)
         self.progress = Progress(cfg.frames, self.run.log_every, cfg.eval_every, (self.resumed or {}).get("progress"))
         self.health = Health(cfg.discount)
-        self.health.see_rewards(buffer.rewards[:len(buffer)])
+        self.health.see_rewards(buffer.rewards[:len(buffer)].cpu().numpy())
         self.start_time = time.time() - wall_time
         self.counters = counters
         self.check_free_space()
@@ -1155,6 +1136,7 @@ class RunDir:
 
     def finish(self) -> str:
         """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the path."""
+        self.read_updates()  # the cut episode's updates get no row, but their health checks
         self.save()
         self.progress.say(f"done: {self.frame} frames in {time.time() - self.start_time:.0f} s; outputs in {self.path}")
         if self.writer:
@@ -1251,7 +1233,12 @@ class RunDir:
                 if net is not None and not all(torch.isfinite(p).all() for p in net.parameters())]
 
     def diverged(self, error: cli.NonFinite, removed: bool) -> str:
-        """The line of a run stopped by a value that is not finite."""
+        """The line of a run stopped by a value that is not finite: the first update metric that was not,
+        if one was (the cause), else what stopped it (an action)."""
+        try:
+            self.read_updates()
+        except cli.NonFinite as first:
+            error = first
         nets = self.non_finite_networks()
         line = (f"the run diverged at frame {self.frame}: {error}"
                 + (f" (parameters no longer finite: {', '.join(nets)})" if nets else "")
@@ -1265,16 +1252,29 @@ class RunDir:
 
     # --- logs ---
     def log_update(self, metrics: dict):
-        """An update's metrics: into the episode's means, and through the health checks (a value that
-        is not finite stops the run here, before the next action reaches the simulator)."""
+        """An update's metrics (0-d tensors on the device, as the agent returns them): kept there until
+        the next log line reads them all at once (read_updates), so that updates never wait for the host."""
         self.progress.updates += 1
-        for kind, message in self.health.check(metrics):
-            self.progress.flags.append(f"warning: {kind}")
-            cli.warn(message)
-            if self.writer:
-                self.writer.add_text("health", message, self.frame)
-        for k, v in metrics.items():
-            self.metrics.setdefault(k, []).append(v)
+        self.pending.append(metrics)
+
+    def read_updates(self):
+        """The pending updates' metrics, read in one device sync: into the episode's means, and through the
+        health checks, update by update (a value that is not finite stops the run; an agent whose weights
+        went NaN is stopped sooner, at its next action, by FiniteActions)."""
+        values = [v for metrics in self.pending for v in metrics.values()]
+        tensors = [v for v in values if torch.is_tensor(v)]
+        read = iter(torch.stack([v.detach().double() for v in tensors]).tolist() if tensors else [])
+        values = iter([next(read) if torch.is_tensor(v) else float(v) for v in values])
+        pending, self.pending = self.pending, []
+        for metrics in pending:
+            metrics = {k: next(values) for k in metrics}
+            for kind, message in self.health.check(metrics):
+                self.progress.flags.append(f"warning: {kind}")
+                cli.warn(message)
+                if self.writer:
+                    self.writer.add_text("health", message, self.frame)
+            for k, v in metrics.items():
+                self.metrics.setdefault(k, []).append(v)
 
     def tick(self):
         """After every env step: the speeds, and once they are measured what the run costs here."""
@@ -1291,8 +1291,9 @@ class RunDir:
     def log_episode(self, ep_return, ep_len, ep_success, info):
         """A train.csv row (and TensorBoard scalars) for the episode that just ended."""
         frame, episode, progress, b = self.frame, self.counters.episode, self.progress, self.buffer
+        self.read_updates()
         self.tick()
-        self.health.see_rewards(b.rewards[np.arange(b.t - ep_len, b.t) % b.capacity])  # the episode's rewards
+        self.health.see_rewards(b.rewards[torch.arange(b.t - ep_len, b.t) % b.capacity].cpu().numpy())  # the episode's
         row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return, "length": ep_len}
         if "success" in info:
             row["success"] = float(ep_success)

@@ -545,14 +545,15 @@ ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; 
 
 
 def load_snapshot_run(run_dir: str):
-    """(sear.Config, snapshot) of a run directory; PlotError for anything that is not one."""
+    """(train.Config, snapshot) of a run directory; PlotError for anything that is not one."""
     import cli
     import sear
+    import train
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
         raise PlotError(f"{run_dir} is not a run directory (no config.json)")
     try:
         state = cli.load_snapshot(run_dir, flag="")
-        return cli.split_config(state["config"], sear.Config)[0], state
+        return cli.split_config(state["config"], train.Config)[0], state
     except cli.ConfigError as e:
         raise PlotError(str(e)) from None
     except (KeyError, TypeError) as e:  # a torch file, but not a sear.py snapshot
@@ -564,7 +565,8 @@ def trained_agent(cfg, state, action_dim: int):
     import torch
     import cli
     import sear
-    agent = sear.Agent(cfg, action_dim, torch.device("cpu"))
+    import train
+    agent = train.make_agent(cfg, action_dim, torch.device("cpu"))
     try:
         agent.load_state_dict(state["agent"])
     except (KeyError, RuntimeError) as e:

@@ -4,13 +4,12 @@ DrQ-v2 (DDPG from pixels: random-shift augmentation, n-step returns, clipped dou
 decaying exploration noise) whose image encoder is also trained by two decoders on a latent split in
 two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
 the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
-c2 = 0.0025). The paper's baselines are the same agent with another auxiliary loss (one seam,
-`AuxLoss`): drq (none), ae, mae, curl, rgbm (mask as an input channel), sear-nosplit; beyond it,
-dear. --drm adds DrM to any of them (drm.py).
+c2 = 0.0025). Other representation losses plug into the same seam (`AuxLoss`, one row of `METHODS`):
+baselines.py adds the paper's baselines, drm.py adds DrM (`DrMAgent`).
 
 In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
-6. Replay buffer, 7. Evaluation, 8. Training loop. Around it: experiment.py (envs, the run directory,
-logs, snapshots, progress, evaluation metrics) and cli.py (flags, recipes, checks, device, threads).
+6. Replay buffer. This file needs torch, numpy and the standard library only; the training loop, the
+envs and the command line stand on it in train.py (`python sear.py ...` runs train.py).
 
 Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
         python sear.py --resume runs/<run dir>     |     python sear.py --evaluate runs/<run dir>
@@ -18,10 +17,7 @@ Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
 from __future__ import annotations
 
 import copy
-import random
-import sys
-import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -29,30 +25,23 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-import cli
-import drm
-import experiment
-from cli import arg
-
 
 # ================================================================================================
 # 1. Config
 # ================================================================================================
+def arg(default, doc, choices=None):
+    """A config field with its one-line doc (train.py's --help) and, for a fixed set of values, the choices."""
+    return field(default=default, metadata={"doc": doc, "choices": choices})
+
+
 @dataclass
-class Config(experiment.EnvConfig, drm.DrMConfig):
-    """The experiment: env, method and every hyper-parameter, one --flag each (the doc is its help). The
-    envs' settings (masks, distractors, rendering) come from experiment.EnvConfig, DrM's (--drm) from
-    drm.DrMConfig. How a process runs it (device, files, snapshots) is cli.RunConfig."""
-    env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
-    method: str = arg("sear", "sear | drq | ae | mae | curl | rgbm | sear-nosplit | dear")
-    seed: int = arg(1, "seeds python, numpy, torch and the environments")
-    frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action repeat)")
+class Config:
+    """The algorithm's hyper-parameters (the paper's table). The experiment around them (env, budget,
+    evaluation, the baselines' and DrM's settings) is train.Config, which adds its fields to these."""
+    method: str = arg("sear", "a row of METHODS: sear, drq (baselines.py adds ae, mae, curl, rgbm, sear-nosplit, dear)")
     precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
                                  "actor, critic and losses stay fp32", ("fp32", "bf16"))
-    # --- environment (paper hyper-parameter table) ---
-    action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
     frame_stack: int = arg(3, "frames stacked into one observation")
-    max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
     # --- DrQ-v2 (paper hyper-parameter table) ---
     replay_size: int = arg(250_000, "replay buffer capacity in transitions")
     seed_frames: int = arg(4000, "frames collected before the first update (DrQ-v2's num_seed_frames)")
@@ -72,20 +61,9 @@ class Config(experiment.EnvConfig, drm.DrMConfig):
     std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action "
                                   "repeat)")
     std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
-    eval_every: int = arg(10_000, "frames between evaluations (snapshots follow --snapshot-minutes)")
-    eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
-    eval_episodes_per_task: int = arg(0, "task sets (metaworld-mt*): evaluation episodes of every task; "
-                                         "0 = ceil(--eval-episodes / number of tasks)")
     # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same 4:1 ratio) ---
     recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (mae too; ae uses 2 x c1, as the authors)")
     mask_coef: float = arg(0.0025, "c2: weight of the mask loss")
-    # --- baselines (each default from its source) ---
-    ae_latent_lambda: float = arg(0.0, "ae: L2 penalty on the latent (authors' DrQ-AE: none; SAC-AE: 1e-6)")
-    mae_ratio: float = arg(0.75, "mae: fraction of patches hidden (MAE, He et al. 2022)")
-    mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)")
-    curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder, every 2nd update (CURL, Laskin et al. 2020)")
-    curl_lr: float = arg(1e-3, "curl: Adam learning rate of CURL's own step (curl_sac.py: encoder_lr)")
-    dear_feature: str = arg("pull", "dear: pull (1 - cos, its released code) | push (max(0, cos))", ("pull", "push"))
 
 
 # ================================================================================================
@@ -97,6 +75,11 @@ def weight_init(m):
         nn.init.orthogonal_(m.weight.data, 1.0 if isinstance(m, nn.Linear) else nn.init.calculate_gain("relu"))
         if m.bias is not None:
             m.bias.data.fill_(0.0)
+
+
+def normalise(pixels):
+    """Pixels in [0, 255] to [-0.5, 0.5]: what the encoder reads and Eq. 5 reconstructs (DrQ-v2's scale)."""
+    return pixels / 255.0 - 0.5
 
 
 def conv_trunk(in_channels: int) -> nn.Sequential:
@@ -118,7 +101,7 @@ class DrQEncoder(nn.Module):
         self.apply(weight_init)
 
     def forward(self, obs):
-        return self.convs(obs / 255.0 - 0.5).flatten(1)
+        return self.convs(normalise(obs)).flatten(1)
 
 
 class PooledEncoder(nn.Module):
@@ -134,7 +117,7 @@ class PooledEncoder(nn.Module):
         self.apply(weight_init)
 
     def forward(self, obs):
-        h = self.pool(self.convs(obs / 255.0 - 0.5))
+        h = self.pool(self.convs(normalise(obs)))
         return self.fc(h.flatten(1))
 
 
@@ -193,7 +176,7 @@ class Actor(nn.Module):
 
     def forward(self, latent, std):
         mu = torch.tanh(self.policy(self.trunk(latent)))
-        return TruncatedNormal(mu, torch.full_like(mu, std))
+        return TruncatedNormal(mu, torch.ones_like(mu) * std)  # std: a float, or a 0-d tensor
 
 
 class Critic(nn.Module):
@@ -254,7 +237,7 @@ def reconstruction_loss(pred, obs, weight=None):
     """Eq. 5 on the [-0.5, 0.5]-normalised image. The prediction is clamped to that range first, as
     in the authors' code (sear/agents/sear.py and drqv2AE.py): no gradient pushes a pixel that is
     already past black or white any further."""
-    return summed_mse(pred.float().clamp(-0.5, 0.5), obs / 255.0 - 0.5, weight)
+    return summed_mse(pred.float().clamp(-0.5, 0.5), normalise(obs), weight)
 
 
 def summed_bce(logits, target):
@@ -323,121 +306,6 @@ class SearAux(AuxLoss):
         return {"mask": self.mask_decoder(z_r), "recon": self.recon_decoder(z)}
 
 
-class SearNoSplitAux(SearAux):
-    """The ablation without latent separation (appendix "Auxiliary Mask Loss Without Latent
-    Separation"): both decoders read the whole latent."""
-    split = False
-
-
-class DEARAux(SearAux):
-    """DEAR (Pore et al. 2024; docs/dear.md): SEAR's mask half and, in place of Eq. 5, c1 x a cosine term between
-    the halves that trains z_R alone: pull = 1 - cos (its released code), push = max(0, cos)."""
-    metric_names, decodes, target = ("feature_loss", "mask_loss"), ("mask",), 1.0
-
-    @classmethod
-    def build(cls, cfg, encoder, critic):
-        aux = cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
-        aux.recon_decoder, aux.target = None, {"pull": 1.0, "push": -1.0}[cfg.dear_feature]  # no reconstruction
-        return aux
-
-    def forward(self, latent, obs_aug, mask_aug, **extra):
-        z, z_r = self.decoder_inputs(latent)
-        feature = F.cosine_embedding_loss(z.detach(), z_r, torch.full_like(z[:, 0], self.target))  # DEAR's loss
-        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
-        return self.c1 * feature + self.c2 * mask_loss, {"feature_loss": feature.item(), "mask_loss": mask_loss.item()}
-
-    def decode(self, latent):
-        return {"mask": self.mask_decoder(self.decoder_inputs(latent)[1])}
-
-
-class ReconstructionAux(AuxLoss):
-    """One reconstruction decoder on the whole latent: what DrQ-AE and DrQ-MAE share. At evaluation
-    nothing is hidden: the decoder reconstructs from the whole image's latent."""
-    metric_names = ("recon_loss",)
-    decodes = ("recon",)
-
-    def decode(self, latent):
-        return {"recon": self.recon_decoder(latent)}
-
-
-class AEAux(ReconstructionAux):
-    """DrQ-AE, as in the authors' code (sear/agents/drqv2AE.py, cfgs/agent/drqv2AE.yaml): the decoder
-    starts from 32 channels, the loss weight is twice SEAR's c1, and there is no latent penalty
-    (SAC-AE's is --ae-latent-lambda)."""
-
-    def __init__(self, cfg: Config, encoder: nn.Module, critic: nn.Module | None = None):
-        super().__init__()
-        self.c1, self.latent_lambda = 2 * cfg.recon_coef, cfg.ae_latent_lambda
-        self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack, in_channels=32)
-
-    def forward(self, latent, obs_aug, mask_aug, **extra):
-        recon_loss = reconstruction_loss(self.recon_decoder(latent), obs_aug)
-        penalty = 0.5 * latent.pow(2).sum(1).mean()
-        loss = self.c1 * recon_loss + self.latent_lambda * penalty
-        return loss, {"recon_loss": recon_loss.detach()}
-
-
-def patch_mask(n, size, patch, ratio, device):
-    """MAE's masking: per sample, hide round(ratio * patches) of the (size/patch)^2 patches, chosen
-    uniformly. Returns a (n, 1, size, size) float map, 1 where hidden."""
-    side = size // patch
-    num, hide = side * side, int(round(ratio * side * side))
-    order = torch.rand(n, num, device=device).argsort(dim=1)
-    hidden = torch.zeros(n, num, device=device)
-    hidden.scatter_(1, order[:, :hide], 1.0)
-    hidden = hidden.view(n, 1, side, side)
-    return hidden.repeat_interleave(patch, dim=2).repeat_interleave(patch, dim=3)
-
-
-class MAEAux(ReconstructionAux):
-    """DrQ-MAE: hide random patches (the same patches in every stacked frame), encode the masked
-    image, reconstruct the whole stack, and score only the hidden pixels."""
-
-    def __init__(self, cfg: Config, encoder: nn.Module, critic: nn.Module | None = None):
-        super().__init__()
-        self.c1, self.ratio, self.patch = cfg.recon_coef, cfg.mae_ratio, cfg.mae_patch
-        self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack)
-
-    def forward(self, latent, obs_aug, mask_aug, encoder, **extra):
-        hidden = patch_mask(obs_aug.shape[0], obs_aug.shape[-1], self.patch, self.ratio, obs_aug.device)
-        masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
-        pred = self.recon_decoder(encoder(masked))
-        recon_loss = reconstruction_loss(pred, obs_aug, weight=hidden)
-        return self.c1 * recon_loss, {"recon_loss": recon_loss.detach()}
-
-
-class CURLAux(AuxLoss):
-    """CURL as curl_sac.py (docs/baselines.md): W between the critic's feature (encoder, then its trunk's Linear +
-    LayerNorm) of one shift and an EMA copy's of another; not in Eq. 6 but its own Adam step after each update."""
-    metric_names = ("curl_loss",)
-
-    def __init__(self, cfg: Config, encoder: nn.Module, critic: nn.Module):
-        super().__init__()
-        self.tau, self.updates, lr = cfg.curl_tau, 0, cfg.curl_lr
-        query = nn.Sequential(encoder, *critic.trunk[:2])  # curl_sac.py's encoder output: the critic's feature
-        self.query, self.key = (query,), copy.deepcopy(query).requires_grad_(False)  # a tuple: the agent's own
-        self.W = nn.Parameter(torch.rand(cfg.feature_dim, cfg.feature_dim))
-        self.opt = torch.optim.Adam([{"params": query.parameters(), "lr": 2 * lr}, {"params": [self.W]}], lr=lr)
-
-    def after_update(self, obs):  # curl_sac.py: the key's EMA every 2nd update, then update_cpc (anchor, positive)
-        if self.updates % 2 == 0:
-            for p, p_key in zip(self.query[0].parameters(), self.key.parameters()):
-                p_key.lerp_(p.detach(), self.tau)
-        self.updates += 1
-        logits = self.query[0](random_shift(obs)) @ (self.W @ self.key(random_shift(obs)).T)
-        loss = F.cross_entropy(logits - logits.max(1, keepdim=True).values, torch.arange(len(obs), device=obs.device))
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self.opt.step()
-        return {"curl_loss": loss.detach()}
-
-    def get_extra_state(self):  # for an exact resume: the EMA's phase and CURL's own Adam
-        return self.updates, self.opt.state_dict()
-
-    def set_extra_state(self, state):
-        self.updates, _ = state[0], self.opt.load_state_dict(state[1])
-
-
 @dataclass(frozen=True)
 class Method:
     doc: str
@@ -450,13 +318,7 @@ class Method:
 METHODS = {
     "sear": Method("SEAR: latent split, mask + recon", aux=SearAux, uses_mask=True),
     "drq": Method("DrQ-v2 as published", encoder="drq"),
-    "ae": Method("DrQ-AE: one decoder on the whole latent", aux=AEAux),
-    "mae": Method("DrQ-MAE: reconstruct hidden patches", aux=MAEAux),
-    "curl": Method("CURL: contrastive, momentum key", aux=CURLAux),
-    "rgbm": Method("DrQ-RGBM: mask appended to the input", encoder="drq", mask_input=True, uses_mask=True),
-    "sear-nosplit": Method("SEAR without latent split", aux=SearNoSplitAux, uses_mask=True),
-    "dear": Method("DEAR: mask half + cosine term, no reconstruction", aux=DEARAux, uses_mask=True),
-}
+}  # baselines.py adds the paper's baselines: ae, mae, curl, rgbm, sear-nosplit, dear
 
 
 # ================================================================================================
@@ -473,10 +335,12 @@ class Batch(NamedTuple):
     next_mask: np.ndarray | torch.Tensor
 
 
-def linear_std(cfg: Config, step: int) -> float:
+def linear_std(cfg: Config, step):
     """DrQ-v2's `linear(std_start, std_end, std_steps)`, evaluated at the global AGENT step (not the
-    frame): at action repeat 2 the std reaches std_end after 500k steps = 1M frames."""
-    mix = min(max(step / cfg.std_steps, 0.0), 1.0)
+    frame): at action repeat 2 the std reaches std_end after 500k steps = 1M frames. `step`: an int, or
+    the update's float64 step tensor (the std is then computed on the device, as a Python float would be)."""
+    mix = step / cfg.std_steps
+    mix = mix.clamp(0.0, 1.0) if torch.is_tensor(mix) else min(max(mix, 0.0), 1.0)
     return (1.0 - mix) * cfg.std_start + mix * cfg.std_end
 
 
@@ -488,38 +352,102 @@ def actor_metrics(actor_loss, mu) -> dict:
             "action_spread": mu.std(0, correction=0).mean()}
 
 
+class Adam(torch.optim.Adam):
+    """torch.optim.Adam (betas 0.9 / 0.999, eps 1e-8), stepped on given gradients:
+    `opt.step(torch.autograd.grad(loss, opt.params))`. Its arithmetic is torch's CPU step, operation for
+    operation (the same weights to the bit), done as one foreach operation per term for all parameters,
+    with each step count a float64 tensor on its parameter's device: no per-parameter loop and no host
+    sync (torch's CPU step reads every count with .item()), so torch.compile traces the whole update into
+    one graph and a CUDA graph can replay it. Its state_dict is torch.optim.Adam's."""
+
+    def __init__(self, params, lr):
+        super().__init__(params, lr=lr)
+        self.reset()
+
+    @property
+    def params(self):
+        return [p for group in self.param_groups for p in group["params"]]
+
+    def reset(self, params=None):
+        """Fresh moments and counts (all parameters, or `params`: DrM's perturbation forgets some)."""
+        for p in self.params if params is None else params:
+            self.state[p] = {"step": torch.zeros((), dtype=torch.float64, device=p.device),
+                             "exp_avg": torch.zeros_like(p), "exp_avg_sq": torch.zeros_like(p)}
+
+    def load_state_dict(self, state_dict):
+        super().load_state_dict(state_dict)
+        for p in self.params:  # torch.optim.Adam's counts are float32 on the CPU: ours on the parameter's device
+            if p in self.state:
+                self.state[p]["step"] = self.state[p]["step"].to(p.device, torch.float64)
+            else:  # saved before its first step
+                self.reset([p])
+
+    @torch.no_grad()
+    def step(self, grads):
+        grads = iter(grads)
+        for group in self.param_groups:
+            params = group["params"]
+            grad = [next(grads) for _ in params]
+            m, v, t = ([self.state[p][k] for p in params] for k in ("exp_avg", "exp_avg_sq", "step"))
+            (beta1, beta2), lr = group["betas"], group["lr"]
+            torch._foreach_add_(t, 1)
+            torch._foreach_lerp_(m, grad, 1 - beta1)
+            torch._foreach_mul_(v, beta2)
+            torch._foreach_addcmul_(v, grad, grad, 1 - beta2)
+            # p += -lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps), the corrections in float64
+            neg_step = torch._foreach_pow(beta1, t)
+            torch._foreach_neg_(neg_step)
+            torch._foreach_add_(neg_step, 1)
+            torch._foreach_reciprocal_(neg_step)
+            torch._foreach_mul_(neg_step, -lr)
+            root = torch._foreach_pow(beta2, t)
+            torch._foreach_neg_(root)
+            torch._foreach_add_(root, 1)
+            torch._foreach_sqrt_(root)
+            denom = torch._foreach_sqrt(v)
+            torch._foreach_div_(denom, root)
+            torch._foreach_add_(denom, group["eps"])
+            update = torch._foreach_mul(m, neg_step)
+            torch._foreach_div_(update, denom)
+            torch._foreach_add_(params, update)
+
+
 class Agent:
+    """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). What a variant of
+    the algorithm changes, it changes by overriding one of: `std` (the exploration std), `next_value`
+    (the critic's bootstrap value), `joint_loss` (Eq. 6) or `update`; drm.DrMAgent is one."""
+
     def __init__(self, cfg: Config, action_dim: int, device: torch.device):
-        self.cfg, self.device, self.action_dim = cfg, device, action_dim
+        self.cfg, self.device = cfg, device
         self.method = METHODS[cfg.method]
         in_channels = (4 if self.method.mask_input else 3) * cfg.frame_stack
+        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs. They use the NHWC
+        # ("channels_last") layout, which oneDNN's and cuDNN's fastest kernels expect, and under
+        # --precision bf16 only they run in bf16: a TD target rounded to bf16's 8-bit mantissa would
+        # be off by up to 0.5 at Q = 100, so actor, critic and every loss stay in fp32.
+        nhwc = dict(device=device, memory_format=torch.channels_last)
         if self.method.encoder == "pooled":
-            self.encoder = PooledEncoder(in_channels, cfg.latent_dim).to(device)
+            self.encoder = PooledEncoder(in_channels, cfg.latent_dim).to(**nhwc)
         else:
-            self.encoder = DrQEncoder(in_channels).to(device)
+            self.encoder = DrQEncoder(in_channels).to(**nhwc)
         repr_dim = self.encoder.repr_dim
         self.actor = Actor(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
         self.critic = Critic(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.aux = self.method.aux.build(cfg, self.encoder, self.critic).to(device) if self.method.aux else None
+        self.aux = self.method.aux.build(cfg, self.encoder, self.critic).to(**nhwc) if self.method.aux else None
         # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one
         # optimiser for all of them equals DrQ-v2's separate encoder/critic optimisers.
         model_params = [*self.encoder.parameters(), *self.critic.parameters()]
         if self.aux is not None:
             model_params += [p for p in self.aux.parameters() if p.requires_grad]
-        self.model_opt = torch.optim.Adam(model_params, lr=cfg.lr)
-        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs. They use the NHWC
-        # ("channels_last") layout, which oneDNN's and cuDNN's fastest kernels expect, and under
-        # --precision bf16 only they run in bf16: a TD target rounded to bf16's 8-bit mantissa would
-        # be off by up to 0.5 at Q = 100, so actor, critic and every loss stay in fp32.
-        for net in (self.encoder, self.aux):
-            if net is not None:
-                net.to(memory_format=torch.channels_last)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr)
+        self.model_opt = Adam(model_params, lr=cfg.lr)
+        self.actor_opt = Adam(self.actor.parameters(), lr=cfg.lr)
         self.metric_names = (("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread")
-                             + (self.aux.metric_names if self.aux else ()) + (drm.METRICS if cfg.drm else ()))
-        self.drm = drm.DrM(cfg, self, linear_std, weight_init, trunk, mlp) if cfg.drm else None  # drm.py
-        self.std = self.drm.std if self.drm else lambda step: linear_std(cfg, step)  # the exploration std
+                             + (self.aux.metric_names if self.aux else ()))
+
+    def std(self, step):
+        """The exploration std at this agent step: DrQ-v2's linear schedule."""
+        return linear_std(self.cfg, step)
 
     def conv_precision(self):
         """bf16 autocast for the convolutional networks under --precision bf16; a no-op for fp32."""
@@ -554,20 +482,19 @@ class Agent:
                 action.uniform_(-1.0, 1.0)
         return action.squeeze(0).cpu().numpy().astype(np.float32)
 
-    def joint_loss(self, batch: Batch, step):
-        """Eq. 6: the critic's TD loss plus the auxiliary loss (c1 * recon + c2 * mask for SEAR), on a
-        batch of float tensors whose obs and next_obs are the encoder's inputs. Returns the loss, the
-        latent of the augmented observation, and the terms for the logs."""
-        obs_aug, mask_aug = shift_together(batch.obs, batch.mask)
-        latent = self.encode(obs_aug)
-        drm_metrics = self.drm.observe(latent.detach(), batch.action, step) if self.drm else {}  # DrM's ratio, V
+    def next_value(self, next_latent, step):
+        """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target critic at
+        the actor's noisy next action."""
+        next_action = self.actor(next_latent, self.std(step)).sample(clip=self.cfg.std_clip)
+        return torch.min(*self.critic_target(next_latent, next_action))
+
+    def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step):
+        """Eq. 6: the critic's TD loss plus the auxiliary loss (c1 * recon + c2 * mask for SEAR) on
+        `latent`, the encoding of the augmented observation obs_aug (mask_aug: its masks, same shift).
+        Returns the loss and the terms for the logs."""
         with torch.no_grad():
             next_latent = self.encode(random_shift(batch.next_obs))
-            dist = self.actor(next_latent, self.std(step))
-            next_action = dist.sample(clip=self.cfg.std_clip)
-            target_q = torch.min(*self.critic_target(next_latent, next_action))
-            target_q = self.drm.blend(next_latent, target_q) if self.drm else target_q  # DrM: + lambda V(s')
-            target_q = batch.reward + batch.discount * target_q
+            target_q = batch.reward + batch.discount * self.next_value(next_latent, step)
         q1, q2 = self.critic(latent, batch.action)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         loss, metrics = critic_loss, {}
@@ -575,15 +502,16 @@ class Agent:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
                 aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
             loss = loss + aux_loss
-        metrics.update(drm_metrics, critic_loss=critic_loss.detach(), q=q1.mean().detach())
-        return loss, latent, metrics
+        return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach()}
 
     def update_critic(self, batch: Batch, step):
         """One joint step on encoder, critic and decoders (Alg. 1)."""
-        loss, latent, metrics = self.joint_loss(batch, step)
-        self.model_opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self.model_opt.step()
+        obs_aug, mask_aug = shift_together(batch.obs, batch.mask)
+        latent = self.encode(obs_aug)
+        loss, metrics = self.joint_loss(latent, obs_aug, mask_aug, batch, step)
+        # materialize_grads: a parameter Eq. 6 does not reach (CURL's W, which CURL steps itself) gets a
+        # zero gradient, and Adam's step of a parameter that never had a gradient is exactly 0.
+        self.model_opt.step(torch.autograd.grad(loss, self.model_opt.params, materialize_grads=True))
         return latent.detach(), metrics
 
     def actor_loss(self, latent, step):
@@ -593,42 +521,59 @@ class Agent:
 
     def update_actor(self, latent, step):
         """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
-        loss does not train the encoder."""
-        # Nor the critic: the gradient DrQ-v2 computes for it here is discarded by the next critic
-        # step; frozen, the backward pass skips those GEMMs.
-        self.critic.requires_grad_(False)
+        loss does not train the encoder; nor the critic, whose gradient is not computed at all."""
         actor_loss, mu = self.actor_loss(latent, step)
-        self.critic.requires_grad_(True)
-        self.actor_opt.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        self.actor_opt.step()
+        self.actor_opt.step(torch.autograd.grad(actor_loss, self.actor_opt.params))
         return actor_metrics(actor_loss, mu)
 
-    def update(self, batch: Batch, step):
-        if self.drm is not None:  # DrM's shrink-and-perturb, when the step is due
-            self.drm.perturb_if_due(step)
-        batch = Batch._make(torch.as_tensor(x, device=self.device).float() for x in batch)
+    def update(self, batch: Batch, step: int) -> dict:
+        """One update on a replay batch (arrays or tensors, on any device) at agent step `step`.
+        Returns its metrics as 0-d tensors on the device: read them when a log line is written."""
+        batch = Batch._make(torch.as_tensor(x).to(self.device, non_blocking=True) for x in batch)
+        return self.learn(batch, torch.full((), step, dtype=torch.float64, device=self.device))
+
+    def learn(self, batch: Batch, step: torch.Tensor) -> dict:
+        """The update itself, tensors in and out (the part --compile takes whole): the critic's and the
+        auxiliary loss's joint step, the actor's step, the target critic's Polyak averaging, and a
+        method's own step (CURL's). `step`: the agent step as a float64 0-d tensor."""
+        batch = Batch._make(x.float() for x in batch)
         batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
                                next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
         latent, metrics = self.update_critic(batch, step)
         metrics.update(self.update_actor(latent, step))
         with torch.no_grad():  # Polyak averaging of the target critic
-            for p, p_t in zip(self.critic.parameters(), self.critic_target.parameters()):
-                p_t.lerp_(p, self.cfg.critic_tau)
+            torch._foreach_lerp_(list(self.critic_target.parameters()), list(self.critic.parameters()),
+                                 self.cfg.critic_tau)
         if self.aux is not None:  # CURL's own step, last as in curl_sac.py
             metrics.update(self.aux.after_update(batch.obs))
-        tensors = {k: v.float() for k, v in metrics.items() if torch.is_tensor(v)}  # DrM's are numbers already
-        return {**metrics, **dict(zip(tensors, torch.stack(list(tensors.values())).tolist()))}  # the logs' one sync
+        return metrics
+
+    def compile(self):
+        """--compile: learn() through torch.compile as one graph, replayed as a CUDA graph on CUDA (mode
+        reduce-overhead). fullgraph: a graph break is an error, on the CPU too, so the CPU's tests catch
+        what would break the CUDA graph. Eager stays the reference: on the CPU the compiled update draws
+        eager's random numbers (inductor's fallback_random) and equals it to rounding."""
+        import torch._dynamo
+        import torch._inductor.config
+        torch._dynamo.config.trace_autograd_ops = True  # torch.autograd.grad inside the graph
+        torch._inductor.config.fallback_random = True
+        held = [*vars(self).values(), *vars(self.aux or nn.Module()).values()]  # optimisers, DrM's state
+        for t in [t for opt in held if isinstance(opt, Adam) for state in opt.state.values() for t in state.values()] \
+                + [t for t in held if torch.is_tensor(t)]:
+            torch._dynamo.mark_static_address(t)  # updated in place by the graph: its address must not move
+        graph = torch.compile(self.learn, fullgraph=True, mode="reduce-overhead" if self.device.type == "cuda" else None)
+        # A CUDA graph's outputs are overwritten by its next replay; the metrics wait for a log line.
+        self.learn = lambda batch, step: {k: v.clone() for k, v in graph(batch, step).items()}
 
     def state_dict(self):
         return {"encoder": self.encoder.state_dict(), "actor": self.actor.state_dict(),
                 "critic": self.critic.state_dict(), "critic_target": self.critic_target.state_dict(),
-                "aux": self.aux.state_dict() if self.aux else None, "drm": self.drm.state_dict() if self.drm else None,
+                "aux": self.aux.state_dict() if self.aux else None,
                 "model_opt": self.model_opt.state_dict(), "actor_opt": self.actor_opt.state_dict()}
 
     def load_state_dict(self, state):
-        for name in ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux", "drm"):
-            if getattr(self, name) is not None:  # aux: the method's networks, drm: DrM's (None without)
+        for name in ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux"):
+            if getattr(self, name) is not None:  # aux: the method's networks (None for drq and rgbm)
                 getattr(self, name).load_state_dict(state[name])
 
 
@@ -636,46 +581,48 @@ class Agent:
 # 6. Replay buffer
 # ================================================================================================
 class ReplayBuffer:
-    """A ring of time steps. Slot i holds the newest RGB frame of step i (uint8, stored once), its
-    robot mask bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led to it,
-    whether it is terminal, and whether it starts an episode. Frame stacks are rebuilt at sampling
-    time, never across an episode start (the first frame repeats, as at reset), and n-step returns
-    are summed at sampling. A time-limit end (truncation) bootstraps; a termination does not.
+    """A ring of time steps, in tensors on `device` (the run's GPU when it fits there: the update then
+    samples without copying from the host). Slot i holds the newest RGB frame of step i (uint8, stored
+    once), its robot mask bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led
+    to it, whether it is terminal, and whether it starts an episode. Frame stacks are rebuilt at sampling
+    time, never across an episode start (the first frame repeats, as at reset), masks unpacked and n-step
+    returns summed there, on the device. A time-limit end (truncation) bootstraps; a termination does not.
     Draws follow DrQ-v2's loader (replay_buffer.py _sample): an episode uniformly among the finished
-    ones still whole in the ring, then a start whose whole n-step window lies in it."""
+    ones still whole in the ring, then a start whose whole n-step window lies in it; the episode index
+    and the draws stay on the host (numpy), so the only host->device copy of a batch is its start times."""
 
-    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount):
+    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu"):
         self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
-        self.frame_shape = tuple(frame_shape)  # (3, H, W)
+        self.frame_shape, self.device = tuple(frame_shape), torch.device(device)  # (3, H, W)
         h, w = frame_shape[1:]
         self.mask_bytes = (h * w + 7) // 8
-        self.frames = np.empty((capacity, *frame_shape), dtype=np.uint8)
-        self.masks = np.empty((capacity, self.mask_bytes), dtype=np.uint8)
-        self.actions = np.empty((capacity, action_dim), dtype=np.float32)
-        self.rewards = np.empty((capacity,), dtype=np.float32)
-        self.terminal = np.empty((capacity,), dtype=bool)
-        self.first = np.empty((capacity,), dtype=bool)
-        self.t = 0  # slots ever written; slot of time step l is l % capacity
+        ring = dict(device=self.device)
+        self.frames = torch.empty((capacity, *frame_shape), dtype=torch.uint8, **ring)
+        self.masks = torch.empty((capacity, self.mask_bytes), dtype=torch.uint8, **ring)
+        self.actions = torch.empty((capacity, action_dim), dtype=torch.float32, **ring)
+        self.rewards = torch.empty((capacity,), dtype=torch.float32, **ring)
+        self.terminal = torch.empty((capacity,), dtype=torch.bool, **ring)
+        self.first = torch.empty((capacity,), dtype=torch.bool, **ring)
+        self.t = 0  # slots ever written; slot of time step t is t % capacity
         self.episodes = np.zeros((0, 2), np.int64)  # (first time, steps) of the finished, drawable episodes
         self.running = -1  # first time of the running episode
-        self.margin = 0  # oldest slots kept out of draws: a sampler thread reads while the loop overwrites them
+        self.bits = torch.arange(7, -1, -1, dtype=torch.uint8, device=self.device)  # np.packbits' order
+
+    ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
 
     @property
     def bytes_per_transition(self):
-        return sum(a.itemsize * int(np.prod(a.shape[1:])) for a in
-                   (self.frames, self.masks, self.actions, self.rewards, self.terminal, self.first))
+        return sum(getattr(self, a)[0].nbytes for a in self.ARRAYS)
 
     def __len__(self):
         return min(self.t, self.capacity)
 
     def _write(self, obs, action, reward, terminal, first):
         i = self.t % self.capacity
-        self.frames[i] = obs["pixels"][-3:]
-        self.masks[i] = np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1))
-        self.actions[i] = action
-        self.rewards[i] = reward
-        self.terminal[i] = terminal
-        self.first[i] = first
+        self.frames[i] = torch.as_tensor(obs["pixels"][-3:])
+        self.masks[i] = torch.from_numpy(np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1)))
+        self.actions[i] = torch.as_tensor(action)
+        self.rewards[i], self.terminal[i], self.first[i] = float(reward), bool(terminal), bool(first)
         self.t += 1
 
     def add_first(self, obs):
@@ -691,40 +638,39 @@ class ReplayBuffer:
         """One env.step(): the action taken, the reward it earned, and the observation it led to."""
         self._write(obs, action, reward, terminated, False)
 
-    def index_episodes(self):
-        """The episode index rebuilt from the `first` flags (after loading a saved ring)."""
+    # --- the saved ring (buffer.npz) ---
+    def arrays(self) -> dict:
+        """The filled slots in physical order, as numpy arrays, and t."""
+        n = len(self)
+        return {"t": self.t, **{a: getattr(self, a)[:n].cpu().numpy() for a in self.ARRAYS}}
+
+    def load_arrays(self, arrays) -> None:
+        """A saved ring back (a wrapped one in the same slots), and the episode index rebuilt from the
+        `first` flags."""
+        n = len(arrays["rewards"])
+        for a in self.ARRAYS:
+            getattr(self, a)[:n] = torch.from_numpy(np.asarray(arrays[a]))
+        self.t = int(arrays["t"])
         lo = max(0, self.t - self.capacity)
-        firsts = lo + np.flatnonzero(self.first[np.arange(lo, self.t) % self.capacity])
+        first = self.first[:n].cpu().numpy()
+        firsts = lo + np.flatnonzero(first[np.arange(lo, self.t) % self.capacity])
         steps = np.diff(firsts) - 1
         self.episodes = np.stack([firsts[:-1], steps], axis=1)[steps >= self.nstep]
         self.running = firsts[-1] if len(firsts) else -1
 
     # --- sampling ---
-    def _stack_indices(self, l):
-        """Time indices of the frames stacked at time l: walk back, but never past an episode start
-        (the frame there is repeated instead)."""
-        idx = [l]
-        for _ in range(self.stack - 1):
-            idx.append(np.where(self.first[idx[-1] % self.capacity], idx[-1], idx[-1] - 1))
-        return np.stack(idx[::-1], axis=1)  # oldest frame first
-
-    def _obs(self, l):
-        idx = self._stack_indices(l) % self.capacity  # (B, stack)
-        b = len(l)
-        pixels = self.frames[idx].reshape(b, -1, *self.frame_shape[1:])
-        bits = np.unpackbits(self.masks[idx], axis=-1)[..., :int(np.prod(self.frame_shape[1:]))]
-        masks = bits.reshape(b, self.stack, *self.frame_shape[1:])
-        return pixels, masks
-
     def drawable(self, lo):
         """(first time, steps) of the finished episodes that start at time lo or later."""
         return self.episodes[np.searchsorted(self.episodes[:, 0], lo):]
 
-    def can_sample(self):
-        return len(self.drawable(max(0, self.t - self.capacity + self.margin))) > 0
+    def can_sample(self, margin=0):
+        return len(self.drawable(max(0, self.t - self.capacity + margin))) > 0
 
-    def sample(self, batch_size, rng: np.random.Generator) -> Batch:
-        return self.transitions(self.draw_starts(batch_size, rng, lo=max(0, self.t - self.capacity + self.margin)))
+    def sample(self, batch_size, rng: np.random.Generator, margin=0) -> Batch | None:
+        """A batch of transitions drawn with `rng`, or None while no episode can be drawn. margin: the
+        oldest slots kept out of the draws (a sampler thread reads while the loop overwrites them)."""
+        lo = max(0, self.t - self.capacity + margin)
+        return self.transitions(self.draw_starts(batch_size, rng, lo)) if len(self.drawable(lo)) else None
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
         """n start times: an episode uniformly among those drawable from lo, then a start from which
@@ -733,159 +679,37 @@ class ReplayBuffer:
         e = rng.integers(len(first), size=n)
         return first[e] + rng.integers(0, steps[e] - self.nstep + 1)
 
-    def transitions(self, l) -> Batch:
-        """The n-step transitions starting at times l, each inside one episode (as drawn): R = sum_k
-        gamma^(k-1) r_(l+k), and the bootstrap discount gamma^n, zero if the episode terminated at l+n."""
-        l = np.asarray(l, dtype=np.int64)
-        ret, gamma_n = np.zeros(len(l), dtype=np.float32), np.float32(1.0)
+    def stacked(self, times):
+        """The frame stacks and mask stacks at `times` (a device tensor): walk back from each time, never
+        past an episode start (the frame there is repeated instead), oldest frame first."""
+        idx = [times]
+        for _ in range(self.stack - 1):
+            idx.append(torch.where(self.first[idx[-1] % self.capacity], idx[-1], idx[-1] - 1))
+        idx = torch.stack(idx[::-1], dim=1) % self.capacity  # (B, stack)
+        b, (h, w) = len(times), self.frame_shape[1:]
+        pixels = self.frames[idx].view(b, -1, h, w)
+        bits = (self.masks[idx].unsqueeze(-1) >> self.bits) & 1  # (B, stack, mask bytes, 8)
+        return pixels, bits.view(b, self.stack, -1)[..., :h * w].view(b, self.stack, h, w)
+
+    def transitions(self, times) -> Batch:
+        """The n-step transitions starting at `times`, each inside one episode (as drawn): R = sum_k
+        gamma^(k-1) r_(t+k), and the bootstrap discount gamma^n, zero if the episode terminated at t+n;
+        float32 arithmetic in numpy's order."""
+        times = torch.as_tensor(np.asarray(times, dtype=np.int64)).to(self.device, non_blocking=True)
+        ret, gamma_n = torch.zeros(len(times), device=self.device), np.float32(1.0)
         for k in range(1, self.nstep + 1):
-            ret += gamma_n * self.rewards[(l + k) % self.capacity]
+            ret += float(gamma_n) * self.rewards[(times + k) % self.capacity]
             gamma_n *= np.float32(self.discount)
         # Only the window's last step can end the episode: no bootstrap after a termination there.
-        discount = np.where(self.terminal[(l + self.nstep) % self.capacity], 0.0, gamma_n).astype(np.float32)
-        obs, mask = self._obs(l)
-        next_obs, next_mask = self._obs(l + self.nstep)
-        action = self.actions[(l + 1) % self.capacity]
+        last = self.terminal[(times + self.nstep) % self.capacity]
+        discount = torch.where(last, 0.0, float(gamma_n))
+        obs, mask = self.stacked(times)
+        next_obs, next_mask = self.stacked(times + self.nstep)
+        action = self.actions[(times + 1) % self.capacity]
         return Batch(obs, mask, action, ret[:, None], discount[:, None], next_obs, next_mask)
 
 
-# ================================================================================================
-# 7. Evaluation
-# ================================================================================================
-class Episode(NamedTuple):
-    """An evaluation episode."""
-    ret: float
-    success: bool | None  # None where the env reports no success
-    task: str | None      # the task of a task set, else None
-
-
-def evaluate(agent: Agent, env, cfg: Config, step: int, on_step=None) -> list[Episode]:
-    """Episodes with the mean action on the eval env, from the same reset seeds at every evaluation
-    (so that evaluations compare); a task set runs each of its tasks (experiment.eval_tasks).
-    on_step(episode, t), if given, is called after every step (the progress line)."""
-    episodes = []
-    for i, task in enumerate(experiment.eval_tasks(env, cfg)):
-        obs, info = env.reset(seed=experiment.episode_seed(cfg.seed + 100_000, i),
-                              options=None if task is None else {"task": task})
-        done, ret, success, t = False, 0.0, False, 0
-        while not done:
-            action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=True)
-            obs, reward, terminated, truncated, info = env.step(action)
-            ret += reward
-            success = success or bool(info.get("success", False))
-            done = terminated or truncated
-            t += 1
-            if on_step:
-                on_step(i, t)
-        episodes.append(Episode(ret, success if "success" in info else None, task))
-    return episodes
-
-
-# ================================================================================================
-# 8. Training loop
-# ================================================================================================
-def seed_everything(seed):
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def eval_due(frame: int, last_eval_frame: int, every: int) -> bool:
-    """drqv2's Every, in frames: a multiple of `every` lies in (last evaluation, frame]. Frame 0 is
-    one (last_eval_frame starts at -1)."""
-    return frame // every > last_eval_frame // every
-
-
-def evaluate_and_log(agent: Agent, eval_env, cfg: Config, c, rundir) -> None:
-    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the counter."""
-    env = rundir.start_eval(eval_env)  # the eval env, scored by the decoders, filmed with --save-video
-    rundir.log_eval(evaluate(agent, env, cfg, c.step, on_step=rundir.show_eval))
-    c.last_eval_frame = c.step * cfg.action_repeat
-
-
-def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
-    """Train from scratch, or continue from `snapshot` (the last one of the run dir run.resume);
-    returns the run directory. The loop decides when to evaluate, snapshot and stop; the
-    experiment.RunDir writes config.json, the logs and the snapshots it is handed and turns a
-    Ctrl-C, a SIGTERM or a storage error into one line."""
-    with experiment.RunDir(cfg, run, snapshot) as rundir:
-        device = cli.torch_setup(run)
-        train_env, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask)  # sets action_repeat 0
-        action_dim = train_env.action_space.shape[0]
-        source = experiment.init_source(cfg, run, action_dim) if run.init_from and not snapshot else None
-        rundir.create()  # a new run's directory and config.json, now that every input is checked
-
-        seed_everything(cfg.seed)
-        sample_rng = np.random.default_rng(cfg.seed)
-        agent = Agent(cfg, action_dim, device)
-        if source is not None:  # transfer: start from another run's networks
-            experiment.copy_parts(agent, source, run.init_parts)
-        experiment.compile_update(agent, run)  # --compile: the update through torch.compile, else eager
-        frame_shape = (3, *train_env.observation_space["pixels"].shape[1:])
-        buffer = ReplayBuffer(cfg.replay_size, frame_shape, action_dim, cfg.frame_stack, cfg.nstep, cfg.discount)
-        prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # None: sample here
-        c = rundir.start(agent, buffer, sample_rng)  # step, episode, last evaluation: fresh, or the snapshot's
-        snapshot_clock = time.monotonic()  # a snapshot every --snapshot-minutes, at the next episode end
-
-        frame = c.step * cfg.action_repeat
-        while frame < cfg.frames:  # drqv2's Until, in frames
-            if not c.mid_episode:
-                rundir.safe_point()  # a first SIGTERM stops the run here, between episodes (with a snapshot)
-                c.mid_episode = True
-                obs, info = train_env.reset(seed=experiment.episode_seed(cfg.seed, c.episode))
-                buffer.add_first(obs)
-                ep_return, ep_len, ep_success = 0.0, 0, False
-            if eval_due(frame, c.last_eval_frame, cfg.eval_every):
-                evaluate_and_log(agent, eval_env, cfg, c, rundir)
-
-            # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
-            # (Agent.act), then the actor plus noise, not yet updated while the seed frames are collected.
-            action = agent.act(obs["pixels"], obs["mask"], c.step, eval_mode=False)
-            # Learning starts once the buffer holds the seed frames' worth of steps: after the random
-            # phase of a new run, and again after a resume that could not bring its buffer back.
-            if (frame >= cfg.seed_frames and c.step % cfg.update_every == 0 and buffer.can_sample()
-                    and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-                batch = prefetcher.next() if prefetcher else buffer.sample(cfg.batch_size, sample_rng)
-                rundir.log_update(agent.update(batch, c.step))
-
-            obs, reward, terminated, truncated, info = train_env.step(action)
-            buffer.add(action, reward, terminated, obs)
-            c.step += 1
-            frame = c.step * cfg.action_repeat
-            ep_return += reward
-            ep_len += 1
-            ep_success = ep_success or bool(info.get("success", False))
-            if terminated or truncated:
-                rundir.log_episode(ep_return, ep_len, ep_success, info)  # train.csv and the progress line
-                c.episode, c.mid_episode = c.episode + 1, False
-                if frame < cfg.frames and time.monotonic() - snapshot_clock >= 60 * run.snapshot_minutes:
-                    rundir.snapshot()  # between episodes: a resume continues exactly
-                    snapshot_clock = time.monotonic()
-            else:
-                rundir.show_step(ep_len)
-
-        if c.last_eval_frame != frame:  # the budget ends with an evaluation at its last frame
-            evaluate_and_log(agent, eval_env, cfg, c, rundir)
-        rundir.finish()  # the final snapshot
-        for closing in (prefetcher, train_env, eval_env):
-            if closing is not None:
-                closing.close()
-        return rundir.path
-
-
-def evaluate_snapshot(cfg: Config, run: cli.RunConfig, snapshot: dict) -> None:
-    """--evaluate RUN_DIR: the snapshot's agent on the run's eval env, scored and printed (no training)."""
-    device = cli.torch_setup(run)
-    _, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask, train=False)
-    agent = Agent(cfg, eval_env.action_space.shape[0], device)
-    experiment.score_snapshot(cfg, run, snapshot, agent, eval_env, evaluate)
-
-
-def main(argv=None) -> int:
-    """`python sear.py --flag value ...`: 0 when done; bad input (2), Ctrl-C (130) and SIGTERM (143) end
-    in one line."""
-    return cli.main(argv, Config, METHODS, train, evaluate_snapshot)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # the training loop, the flags and the run harness stand on this file in train.py
+    import os
+    import runpy
+    runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py"), run_name="__main__")

@@ -212,7 +212,8 @@ def sear_flag_names() -> set[str]:
     """Every flag sear.py's parser has: one per Config field, plus --no-X for booleans."""
     import cli
     import sear
-    return cli.flag_names(sear.Config)
+    import train
+    return cli.flag_names(train.Config)
 
 
 def check_passthrough(tokens: list[str]) -> None:
@@ -234,10 +235,11 @@ def sear_config(argv: list[str], what: str):
     import cli
     import envs
     import sear
+    import train
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):  # argparse prints its one-line error, then exits
-            cfg, run, _ = cli.parse_args(argv, sear.Config, sear.METHODS)
+            cfg, run, _ = cli.parse_args(argv, train.Config, sear.METHODS)
         envs.default_action_repeat(cfg.env)    # unknown env names fail here, not hours later
     except SystemExit:
         raise SweepError(f"sear.py rejects {what}: {err.getvalue().strip().removeprefix('sear.py: error: ')}")
@@ -250,7 +252,8 @@ def config_key(cfg) -> str:
     """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys alone."""
     import cli
     import sear
-    defaults = cli.config_dict(sear.Config(), cli.RunConfig())
+    import train
+    defaults = cli.config_dict(train.Config(), cli.RunConfig())
     diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
     return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
 

@@ -18,6 +18,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import cli  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
 seen = []
 
@@ -35,5 +36,5 @@ def forward(self, latent, std):
 
 if __name__ == "__main__":
     sear.Actor.forward = forward
-    cfg, run, _ = cli.parse_args(sys.argv[1:], sear.Config, sear.METHODS)
-    sear.train(cfg, run)
+    cfg, run, _ = cli.parse_args(sys.argv[1:], train.Config, sear.METHODS)
+    train.train(cfg, run)

@@ -36,6 +36,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import cli  # noqa: E402
 import experiment  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
 
 def gemm_size(device):
@@ -73,8 +74,8 @@ def fake_batch(batch_size, action_dim=6, seed=0):
 def make_agent(method, precision, batch_size, device="cpu", action_dim=6):
     """method: a sear.py method, or METHOD+drm for it with --drm."""
     method, drm_flag = cli.split_method_label(method)
-    cfg = sear.Config(method=method, batch_size=batch_size, action_repeat=2, precision=precision, drm=bool(drm_flag))
-    return sear.Agent(cfg, action_dim, torch.device(device))
+    cfg = train.Config(method=method, batch_size=batch_size, action_repeat=2, precision=precision, drm=bool(drm_flag))
+    return train.make_agent(cfg, action_dim, torch.device(device))
 
 
 def time_updates(agent, batch, updates):
@@ -176,11 +177,11 @@ def op_breakdown(args, peaks):
 def step_split(args):
     """One real training step, part by part: env.step, agent.act, replay sample, agent.update
     (an update every `update_every` steps, as in training; the table gives the per-step share)."""
-    cfg = sear.Config(env=args.env, method=args.split_method, batch_size=args.batch_size, precision=args.precisions[0],
+    cfg = train.Config(env=args.env, method=args.split_method, batch_size=args.batch_size, precision=args.precisions[0],
                       render_quality="fast", replay_size=2_000)
     train_env, eval_env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
-    agent = sear.Agent(cfg, train_env.action_space.shape[0], torch.device(args.device))
+    agent = train.make_agent(cfg, train_env.action_space.shape[0], torch.device(args.device))
     buffer = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), train_env.action_space.shape[0], cfg.frame_stack,
                                cfg.nstep, cfg.discount)
     rng = np.random.default_rng(0)
@@ -371,15 +372,15 @@ def run_agents(args):
     (the values without the loaded memory); a fresh agent of the same config (seed 0). And the batches
     they see (from the run's buffer.npz when it was saved, else random frames) and the run's agent step."""
     snapshot = cli.load_snapshot(args.snapshot, "--snapshot")
-    cfg, _ = cli.split_config(snapshot["config"], sear.Config)
+    cfg, _ = cli.split_config(snapshot["config"], train.Config)
     cfg.batch_size = args.batch_size
     action_dim = [v for k, v in snapshot["agent"]["actor"].items() if k.startswith("policy.")][-1].numel()
     device = torch.device(args.device)
-    agents = {name: sear.Agent(cfg, action_dim, device) for name in ("trained", "trained, state copied")}
+    agents = {name: train.make_agent(cfg, action_dim, device) for name in ("trained", "trained, state copied")}
     agents["trained"].load_state_dict(snapshot["agent"])  # as a resume does (experiment.RunDir.restore)
     agents["trained, state copied"].load_state_dict(copy.deepcopy(snapshot["agent"]))
     torch.manual_seed(0)
-    agents["fresh"] = sear.Agent(cfg, action_dim, device)
+    agents["fresh"] = train.make_agent(cfg, action_dim, device)
     path = os.path.join(args.snapshot, "buffer.npz")
     rng = np.random.default_rng(0)
     if snapshot.get("buffer_saved") and os.path.exists(path):

@@ -30,6 +30,7 @@ import torch  # noqa: E402
 import plot  # noqa: E402
 import experiment  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
 
 def cpu_seconds() -> float:
@@ -65,7 +66,7 @@ def main() -> None:
             watched, path = make()
             steps = []
             began, cpu = time.perf_counter(), cpu_seconds()
-            sear.evaluate(agent, watched, cfg, step, on_step=lambda episode, t: steps.append(t))
+            train.evaluate(agent, watched, cfg, step, on_step=lambda episode, t: steps.append(t))
             if watched is not env:
                 watched.finish()  # waits for ffmpeg, so its CPU time is counted
             rows.append((name, cpu_seconds() - cpu, time.perf_counter() - began))

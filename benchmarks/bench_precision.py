@@ -24,11 +24,12 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import cli  # noqa: E402
 import experiment  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
 
 def batches_from_env(env_name, n_batches, batch_size, seed=0):
     """Real frames: random-action episodes of `env_name` in a replay buffer, then fixed samples."""
-    cfg = sear.Config(env=env_name, render_quality="fast", replay_size=4_000)
+    cfg = train.Config(env=env_name, render_quality="fast", replay_size=4_000)
     train_env, eval_env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
     adim = train_env.action_space.shape[0]
@@ -84,12 +85,12 @@ def main():
     batches, adim = (batches_from_env(args.env, 16, args.batch_size) if args.env
                      else random_batches(16, args.batch_size))
     torch.manual_seed(0)
-    fp32 = sear.Agent(sear.Config(method=args.method, batch_size=args.batch_size, precision="fp32"), adim,
+    fp32 = sear.Agent(train.Config(method=args.method, batch_size=args.batch_size, precision="fp32"), adim,
                       torch.device("cpu"))
-    bf16 = sear.Agent(sear.Config(method=args.method, batch_size=args.batch_size, precision="bf16"), adim,
+    bf16 = sear.Agent(train.Config(method=args.method, batch_size=args.batch_size, precision="bf16"), adim,
                       torch.device("cpu"))
     bf16.load_state_dict(copy.deepcopy(fp32.state_dict()))
-    probe = sear.Agent(sear.Config(method=args.method, batch_size=args.batch_size, precision="bf16"), adim,
+    probe = sear.Agent(train.Config(method=args.method, batch_size=args.batch_size, precision="bf16"), adim,
                        torch.device("cpu"))
 
     print(f"## bf16 vs fp32: {args.method}, batch {args.batch_size}, {args.updates} updates, "

@@ -29,6 +29,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import cli  # noqa: E402
 import experiment  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
 MARKER = "drqv2_loader.json"
 
@@ -63,8 +64,8 @@ def install(workers):
     """sear.py trains with LoaderReplay: its buffer class, the run dir's marker (checked on --resume)
     and the resume command that an interrupted run prints."""
     LoaderReplay.workers = workers
-    sear.ReplayBuffer = LoaderReplay  # sear.train builds its buffer from this name
-    create, train, interrupted = experiment.RunDir.create, sear.train, experiment.interrupt_message
+    train.ReplayBuffer = LoaderReplay  # train.train builds its buffer from this name
+    create, train_run, interrupted = experiment.RunDir.create, train.train, experiment.interrupt_message
 
     def create_marked(rundir):
         resumed = rundir.path is not None
@@ -81,12 +82,12 @@ def install(workers):
 
     def train_loader(cfg, run, snapshot=None):
         LoaderReplay.update_every = cfg.update_every
-        return train(cfg, run, snapshot)
+        return train_run(cfg, run, snapshot)
 
     def interrupt_message(*a, **k):  # resumed through sear.py, the run would go on without the workers
         return interrupted(*a, **k).replace("python sear.py --resume", "python benchmarks/drqv2_loader.py -- --resume")
 
-    experiment.RunDir.create, sear.train, experiment.interrupt_message = create_marked, train_loader, interrupt_message
+    experiment.RunDir.create, train.train, experiment.interrupt_message = create_marked, train_loader, interrupt_message
 
 
 def main(argv=None):
@@ -103,7 +104,7 @@ def main(argv=None):
         print("drqv2_loader.py: give --workers 1 or more and sear.py's flags after --", file=sys.stderr)
         return 2
     install(args.workers)
-    return sear.main(sear_args)
+    return train.main(sear_args)
 
 
 if __name__ == "__main__":

@@ -170,21 +170,22 @@ def compare_policy(args):
 
     import experiment
     import sear
+    import train
     try:
         snapshot = cli.load_snapshot(args.run_dir, flag="")
     except cli.ConfigError as e:
         fail(str(e))
-    cfg, _ = cli.split_config(snapshot["config"], sear.Config)
+    cfg, _ = cli.split_config(snapshot["config"], train.Config)
     torch.set_num_threads(args.threads)
     method = sear.METHODS[cfg.method]
     train_env, eval_env = experiment.make_envs(cfg, method.uses_mask)
-    agent = sear.Agent(cfg, train_env.action_space.shape[0], torch.device("cpu"))
+    agent = train.make_agent(cfg, train_env.action_space.shape[0], torch.device("cpu"))
     agent.load_state_dict(snapshot["agent"])
     step = snapshot["counters"]["step"]
     std = sear.linear_std(cfg, step)
     print(f"{args.run_dir}: snapshot at frame {step * cfg.action_repeat} (agent step {step}, exploration std {std:.2f})")
     # (label, env, std to sample with or None for the mean action, episode_seed's seed and first episode):
-    # the evaluation's own reset seeds (sear.evaluate), and train-env seeds no training episode used
+    # the evaluation's own reset seeds (train.evaluate), and train-env seeds no training episode used
     fresh = (cfg.seed, 10 ** 6)
     rows = [("mean action, eval env (the evaluation's reset seeds)", eval_env, None, (cfg.seed + 100_000, 0)),
             ("mean action, train env (new reset seeds)", train_env, None, fresh)]

@@ -21,6 +21,7 @@ import numpy as np  # noqa: E402
 
 import experiment  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
 
 def main() -> None:
@@ -32,7 +33,7 @@ def main() -> None:
     parser.add_argument("--render-quality", default="fast")
     args = parser.parse_args()
 
-    cfg = sear.Config(env=args.env, action_repeat=args.action_repeat, seed=args.seed, method="drq",
+    cfg = train.Config(env=args.env, action_repeat=args.action_repeat, seed=args.seed, method="drq",
                       render_quality=args.render_quality)
     _, env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)  # the eval env: the run's evaluation seeds and settings
     rng = np.random.default_rng(args.seed)

@@ -7,10 +7,12 @@ import pytest
 import torch
 
 import sear
+import baselines
+import train
 from tests.test_cli import TINY, only_run_dir, run
 
 def tiny_cfg(method, **kw):
-    return sear.Config(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=8,
+    return train.Config(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=8,
                        action_repeat=2, **kw)
 
 
@@ -58,7 +60,7 @@ def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
 
 def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels(device):
     torch.manual_seed(0)
-    hidden = sear.patch_mask(6, 84, 12, 0.75, device).cpu()
+    hidden = baselines.patch_mask(6, 84, 12, 0.75, device).cpu()
     assert hidden.shape == (6, 1, 84, 84)
     assert torch.allclose(hidden.mean(dim=(1, 2, 3)), torch.full((6,), 37 / 49))  # round(0.75 * 49) patches
     # every patch is wholly hidden or wholly visible
@@ -67,7 +69,7 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels(device):
 
     cfg = tiny_cfg("mae")
     encoder = sear.PooledEncoder(9, cfg.latent_dim)
-    aux = sear.MAEAux(cfg, encoder)
+    aux = baselines.MAEAux(cfg, encoder)
     obs = torch.full((4, 9, 84, 84), 255.0)  # target +0.5 everywhere
 
     class Grey(torch.nn.Module):  # predicts 0 everywhere: squared error 0.25 on every pixel

@@ -31,9 +31,10 @@ def test_help_shows_every_flag_in_its_group(tmp_path):
     """--help lists every flag, the experiment's settings by the dataclass that holds them."""
     import cli
     import sear
+    import train
     r = run(["--help"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    assert all(name in r.stdout for name in cli.flag_names(sear.Config))
+    assert all(name in r.stdout for name in cli.flag_names(train.Config))
     groups = [line for line in r.stdout.splitlines() if line.startswith("the ")]
     assert groups == ["the experiment (sear.py Config):", "the experiment (experiment.py EnvConfig):",
                       "the experiment (drm.py DrMConfig):", "the run (cli.py RunConfig):"]
@@ -217,7 +218,7 @@ def test_interrupt_between_episodes_writes_a_snapshot(tmp_path):
         "        raise KeyboardInterrupt\n"
         "    real(run_dir, payload)\n"
         "experiment.save_snapshot = ctrl_c_once\n"
-        "sys.exit(sear.main(sys.argv[1:]))\n")
+        "sys.exit(train.main(sys.argv[1:]))\n")
     r = subprocess.run([sys.executable, "-c", driver, "--run-root", str(tmp_path / "runs"), "--env", "walker-walk",
                         *TINY, "--frames", "1000", "--snapshot-minutes", "0"],
                        capture_output=True, text=True, timeout=300, cwd=ROOT,
@@ -261,7 +262,8 @@ def test_evaluation_shows_which_episode_it_is_on_and_that_frame_0_scores_the_unt
 def test_help_shows_per_task_defaults_as_such():
     import cli
     import sear
-    text = " ".join(cli.build_parser(sear.Config, sear.METHODS).format_help().split())
+    import train
+    text = " ".join(cli.build_parser(train.Config, sear.METHODS).format_help().split())
     assert "(default: 4096; per task: 512 on the task sets (metaworld-mt3, -mt10, -mt50))" in text
     assert ("(default: 500000; per task: 2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 "
             "(easy), 500000") in text
@@ -344,6 +346,7 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
 
     import cli
     import sear
+    import train
     seen = {"act": [], "update": [], "actions": []}
     act, update, add, sample = sear.Agent.act, sear.Agent.update, sear.ReplayBuffer.add, sear.TruncatedNormal.sample
     monkeypatch.setattr(sear.Agent, "act", lambda self, p, m, step, eval_mode: (
@@ -358,8 +361,8 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     cfg, run, _ = cli.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat",
                                   str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY,
                                   "--seed-frames", "12", "--exploration-steps", "6"],
-                                 sear.Config, sear.METHODS)
-    sear.train(cfg, run)
+                                 train.Config, sear.METHODS)
+    train.train(cfg, run)
     last = cfg.frames // action_repeat - 1
     assert seen["act"] == list(range(last + 1))
     source = ["actor" if np.all(a == 0.125) else "uniform" for a in seen["actions"]]

@@ -8,10 +8,12 @@ import io
 import pytest
 import torch
 
+import baselines
 import experiment
 import sear
 from tests import reference
 from tests.test_baselines import numpy_batch, tiny_cfg
+from tests.test_sear import captured_grads
 
 RELEASED_COMMIT = "8416d6e"  # the commit docs/baselines.md describes
 
@@ -66,13 +68,14 @@ def test_curl_is_its_own_adam_step_after_the_update_not_a_term_of_eq6(device):
     _, metrics = agent.update_critic(torch_batch, step=10**5)  # the joint step (Eq. 6): no CURL term
     assert "curl_loss" not in metrics and torch.equal(aux.W, W)
     online = snapshot(aux.query[0])
+    grads = captured_grads(aux.opt)
     metrics = aux.after_update(torch_batch.obs)
     assert metrics["curl_loss"] > 0
     # Adam's first step moves each parameter by its learning rate (m / sqrt(v) = sign of the gradient):
     # W by --curl-lr, the encoder and feature by twice that (curl_sac.py's encoder_ and cpc_optimizer)
     torch.testing.assert_close((aux.W - W).abs(), torch.full_like(W, 1e-3), rtol=1e-3, atol=0)
-    for before, p in zip(online, aux.query[0].parameters()):
-        moved = (p - before).abs()[p.grad.abs() > 1e-4]  # where eps = 1e-8 is negligible
+    for before, p, grad in zip(online, aux.query[0].parameters(), grads[0]):
+        moved = (p - before).abs()[grad.abs() > 1e-4]  # where eps = 1e-8 is negligible
         torch.testing.assert_close(moved, torch.full_like(moved, 2e-3), rtol=1e-3, atol=0)
     # and in the agent's update it comes last, after the actor's step (curl_sac.py's order)
     order = []
@@ -113,7 +116,8 @@ def test_transfer_starts_the_key_from_what_was_loaded_and_curls_adam_afresh(devi
     agent = curl_agent(device)
     experiment.copy_parts(agent, copy.deepcopy(source.state_dict()), parts)
     assert all(torch.equal(k, q) for k, q in zip(agent.aux.key.parameters(), agent.aux.query[0].parameters()))
-    assert agent.aux.updates == 0 and not agent.aux.opt.state  # CURL's own optimiser starts fresh
+    fresh = all(not s["step"] and not s["exp_avg"].any() for s in agent.aux.opt.state.values())
+    assert agent.aux.updates == 0 and fresh  # CURL's own optimiser starts fresh
     assert torch.equal(agent.aux.W, source.aux.W) == (parts != "encoder")
 
 
@@ -186,16 +190,16 @@ def test_same_loss_gradients_and_weights_as_the_reference(curl_sac, monkeypatch)
         obs = obs_batch(device, seed=step)
         anchor, positive = sear.random_shift(obs), sear.random_shift(obs)
         views = [anchor, positive]
-        monkeypatch.setattr(sear, "random_shift", lambda x: views.pop(0))  # ours draws anchor, then positive
+        monkeypatch.setattr(baselines, "random_shift", lambda x: views.pop(0))  # ours draws anchor, then positive
+        grads = captured_grads(aux.opt)
         mine = aux.after_update(obs)
         monkeypatch.undo()
         monkeypatch.setattr(curl_sac, "make_encoder", lambda *a, **k: None)
         theirs.update(Replay(anchor, positive), log, step)
         assert mine["curl_loss"] == pytest.approx(log.curl[-1], rel=1e-5)
-        pairs = ((aux.query[0], theirs.critic.encoder.net), ([aux.W], [theirs.CURL.W]))
-        for o, t in pairs:
-            for po, pt in zip(getattr(o, "parameters", lambda: o)(), getattr(t, "parameters", lambda: t)()):
-                torch.testing.assert_close(po.grad, pt.grad, rtol=1e-4, atol=1e-6, msg=lambda m: f"gradient, update {step}: {m}")
+        theirs_params = [*theirs.critic.encoder.net.parameters(), theirs.CURL.W]  # in our Adam's order
+        for go, pt in zip(grads[0], theirs_params, strict=True):
+            torch.testing.assert_close(go, pt.grad, rtol=1e-4, atol=1e-6, msg=lambda m: f"gradient, update {step}: {m}")
     # Adam moves a weight by about its learning rate whatever the gradient's size, so a gradient that rounding
     # alone sets (near 0: one Adam at 2 x lr against two at lr, lerp against their soft update) can move a
     # weight differently by a part of 2e-3; 1e-4 still shows any wrong rate, period or EMA (1e-3 a step)

@@ -18,6 +18,7 @@ import torch
 import cli
 import drm
 import sear
+import train
 from tests.test_cli import TINY, rows, run, straight_and_resumed
 
 REFERENCE = os.environ.get("SEAR_DRM_REFERENCE", "")
@@ -27,7 +28,7 @@ RELEASED_COMMIT = "317116a"  # the commit docs/drm.md describes
 def drm_cfg(method="drq", **kw):
     base = dict(method=method, drm=True, latent_dim=64, hidden_dim=64, feature_dim=16, batch_size=8,
                 action_repeat=2, std_steps=100_000)
-    return sear.Config(**{**base, **kw})
+    return train.Config(**{**base, **kw})
 
 
 def replay_batch(n=8, action_dim=2, seed=0):
@@ -37,6 +38,11 @@ def replay_batch(n=8, action_dim=2, seed=0):
             rng.uniform(-1, 1, (n, action_dim)).astype(np.float32), rng.normal(size=(n, 1)).astype(np.float32),
             np.full((n, 1), 0.97, np.float32), rng.integers(0, 256, (n, 9, 84, 84), dtype=np.uint8),
             rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8))
+
+
+def never_stepped(state) -> bool:
+    """An Adam state as a parameter that has never been stepped has it: count 0, moments 0."""
+    return not state["step"] and not state["exp_avg"].any() and not state["exp_avg_sq"].any()
 
 
 # ---------------------------------------------------------------- hand-computed
@@ -58,14 +64,14 @@ def test_dormant_ratio_scores_the_relu_activation_of_hidden_layers():
         actor.policy[2].weight.copy_(torch.eye(3))
         actor.policy[4].weight.copy_(torch.ones(1, 3))
     latent = torch.tensor([[1.0, 0.01], [-1.0, 0.01]])
-    assert drm.dormant_ratio(actor, latent, 0.0, threshold=0.025) == 3 / 9
-    assert drm.dormant_ratio(actor, latent, 0.0, threshold=0.0) == 0.0  # nothing is below 0
+    assert drm.dormant_ratio(actor, latent, threshold=0.025) == 3 / 9
+    assert drm.dormant_ratio(actor, latent, threshold=0.0) == 0.0  # nothing is below 0
 
 
 def test_awaken_std_lambda_and_perturb_factor_by_hand():
-    agent = sear.Agent(drm_cfg(), action_dim=2, device=torch.device("cpu"))
-    d = agent.drm
-    assert d.ratio == 1.0 and d.awaken_step is None  # DrM's start: std ~1, lambda ~0, factor at its floor
+    agent = train.make_agent(drm_cfg(), action_dim=2, device=torch.device("cpu"))
+    d = agent
+    assert d.ratio == 1.0 and d.awake_at is None  # DrM's start: std ~1, lambda ~0, factor at its floor
     assert d.std(0) == pytest.approx(1 / (1 + math.exp(-8)), abs=1e-15)
     assert d.lam == pytest.approx(0.6 / (1 + math.exp(40)), rel=1e-12)
     assert d.perturb_factor() == 0.2
@@ -82,26 +88,30 @@ def test_awaken_std_lambda_and_perturb_factor_by_hand():
 def test_the_actor_wakes_once_after_the_uniform_steps_below_the_target(monkeypatch):
     """DrM: awaken_step is the first update after num_expl_steps whose ratio is below the target; it
     never goes back to sleep, and the std then follows the schedule counted from that step."""
-    agent = sear.Agent(drm_cfg(exploration_steps=2000), action_dim=2, device=torch.device("cpu"))
+    agent = train.make_agent(drm_cfg(exploration_steps=2000), action_dim=2, device=torch.device("cpu"))
     ratios = iter([0.1, 0.3, 0.1, 0.5])
     monkeypatch.setattr(drm, "dormant_ratio", lambda *a, **k: next(ratios))
     latent, action = torch.randn(4, agent.encoder.repr_dim), torch.zeros(4, 2)
     for step, awake in ((2000, None), (2002, None), (2004, 2004), (2006, 2004)):
-        m = agent.drm.observe(latent, action, step)
-        assert agent.drm.awaken_step == awake
-    assert m["dormant_ratio"] == 0.5 and m["expl_std"] == max(1 / (1 + math.exp(-3)), sear.linear_std(agent.cfg, 2))
+        m = agent.observe(latent, action, step)
+        assert agent.awake_at == awake
+    assert m["dormant_ratio"] == 0.5
+    assert m["expl_std"] == pytest.approx(max(1 / (1 + math.exp(-3)), sear.linear_std(agent.cfg, 2)), rel=1e-12)
     assert agent.std(2006) == m["expl_std"] and "perturb_factor" not in m
 
 
 def test_expectile_loss_and_blended_target_by_hand(device):
     diff = torch.tensor([[-1.0], [2.0]], device=device)  # V - Q: one below (weight 0.9), one above (weight 0.1)
     assert drm.expectile_loss(diff, 0.9).item() == pytest.approx((0.9 * 1 + 0.1 * 4) / 2)
-    agent = sear.Agent(drm_cfg(), action_dim=2, device=device)
-    agent.drm.ratio = 0.2  # lambda = 0.3
-    next_latent, target_q = torch.randn(5, agent.encoder.repr_dim, device=device), torch.randn(5, 1, device=device)
+    agent = train.make_agent(drm_cfg(), action_dim=2, device=device)
+    agent.ratio = 0.2  # lambda = 0.3
+    next_latent = torch.randn(5, agent.encoder.repr_dim, device=device)
     with torch.no_grad():
-        expected = 0.3 * agent.drm.value(next_latent) + 0.7 * target_q
-        torch.testing.assert_close(agent.drm.blend(next_latent, target_q), expected)
+        torch.manual_seed(1)
+        target_q = sear.Agent.next_value(agent, next_latent, 5000)  # min(Q1', Q2') of the same noisy action
+        expected = 0.3 * agent.value(next_latent) + 0.7 * target_q
+        torch.manual_seed(1)
+        torch.testing.assert_close(agent.next_value(next_latent, 5000), expected)
 
 
 def test_value_steps_bring_v_to_the_expectile_of_q_over_the_actions():
@@ -109,15 +119,15 @@ def test_value_steps_bring_v_to_the_expectile_of_q_over_the_actions():
     actions. One state with 64 actions: V(s) goes to the 0.9-expectile of their Q (the m with
     sum_i w_i (q_i - m) = 0, w_i = 0.9 above m and 0.1 below), above their mean; the critic is untouched."""
     torch.manual_seed(0)
-    agent = sear.Agent(drm_cfg(lr=1e-3), action_dim=2, device=torch.device("cpu"))
+    agent = train.make_agent(drm_cfg(lr=1e-3), action_dim=2, device=torch.device("cpu"))
     latent, action = torch.randn(1, agent.encoder.repr_dim).repeat(64, 1), torch.rand(64, 2) * 2 - 1
     critic = copy.deepcopy(agent.critic.state_dict())
     for _ in range(150):
-        agent.drm.observe(latent, action, 5000)
+        agent.observe(latent, action, 5000)
     assert all(torch.equal(v, agent.critic.state_dict()[k]) for k, v in critic.items())
     with torch.no_grad():
         q = torch.min(*agent.critic(latent, action)).squeeze(1).double().numpy()
-        v = agent.drm.value(latent)[0].item()
+        v = agent.value(latent)[0].item()
     m = q.mean()
     for _ in range(200):  # the expectile's fixed point
         w = np.where(q > m, 0.9, 0.1)
@@ -131,16 +141,16 @@ def test_perturb_mixes_every_linear_layer_with_a_fresh_init_and_resets_adam(meth
     weight 0.4 W + 0.6 O with O orthogonal (DrQ-v2's init); LayerNorm, convolutions and SEAR's
     decoders keep theirs. Adam forgets the moments of the perturbed networks, not the decoders'."""
     torch.manual_seed(0)
-    agent = sear.Agent(drm_cfg(method, drm_perturb_every=10), action_dim=2, device=device)
+    agent = train.make_agent(drm_cfg(method, drm_perturb_every=10), action_dim=2, device=device)
     agent.update(replay_batch(), step=4)  # Adam moments everywhere
     before = {name: copy.deepcopy(getattr(agent, name).state_dict()) for name in ("actor", "critic", "encoder", "aux")
               if getattr(agent, name) is not None}
-    before["value"] = copy.deepcopy(agent.drm.value.state_dict())
-    agent.drm.ratio = 0.3
-    agent.drm.perturb_if_due(15)
+    before["value"] = copy.deepcopy(agent.value.state_dict())
+    agent.ratio = 0.3
+    agent.perturb_if_due(15)
     assert torch.equal(agent.actor.trunk[0].weight, before["actor"]["trunk.0.weight"])  # not due
-    agent.drm.perturb_if_due(20)
-    nets = {"actor": agent.actor, "critic": agent.critic, "encoder": agent.encoder, "value": agent.drm.value}
+    agent.perturb_if_due(20)
+    nets = {"actor": agent.actor, "critic": agent.critic, "encoder": agent.encoder, "value": agent.value}
     linear = 0
     for name, net in nets.items():
         for mod_name, m in net.named_modules():
@@ -157,14 +167,15 @@ def test_perturb_mixes_every_linear_layer_with_a_fresh_init_and_resets_adam(meth
                     assert torch.equal(p, before[name][prefix + p_name]), (name, prefix + p_name)
     assert linear == 4 + 7 + (1 if method == "sear" else 0) + 4  # SEAR's encoder has one Linear (its fc)
     perturbed = [*agent.actor.parameters(), *agent.critic.parameters(), *agent.encoder.parameters(),
-                 *agent.drm.value.parameters()]
-    states = {**agent.model_opt.state, **agent.actor_opt.state, **agent.drm.value_opt.state}
-    assert not any(p in states for p in perturbed)
+                 *agent.value.parameters()]
+    states = {**agent.model_opt.state, **agent.actor_opt.state, **agent.value_opt.state}
+    assert all(never_stepped(states[p]) for p in perturbed)
     if method == "sear":
         assert all(torch.equal(v, before["aux"][k]) for k, v in agent.aux.state_dict().items())
-        assert all(p in agent.model_opt.state for p in agent.aux.parameters())
-    m = agent.update(replay_batch(), step=22)  # the next update reports the perturbation once
-    assert m["perturb_factor"] == pytest.approx(0.4) and "perturb_factor" not in agent.update(replay_batch(), 24)
+        assert not any(never_stepped(agent.model_opt.state[p]) for p in agent.aux.parameters())
+    agent.ratio = 0.3
+    m = agent.update(replay_batch(), step=30)  # an update that perturbs reports it, the next one does not
+    assert m["perturb_factor"] == pytest.approx(0.4) and "perturb_factor" not in agent.update(replay_batch(), 32)
     assert set(m) == set(agent.metric_names)
 
 
@@ -174,38 +185,38 @@ def test_drm_leaves_the_runs_initial_networks_and_random_stream_as_without_it():
     states = []
     for flag in (False, True):
         torch.manual_seed(3)
-        agent = sear.Agent(drm_cfg(drm=flag), action_dim=2, device=torch.device("cpu"))
+        agent = train.make_agent(drm_cfg(drm=flag), action_dim=2, device=torch.device("cpu"))
         states.append(({k: v.clone() for k, v in agent.actor.state_dict().items()}, torch.get_rng_state()))
     assert all(torch.equal(v, states[1][0][k]) for k, v in states[0][0].items())
     assert torch.equal(states[0][1], states[1][1])
 
 
 def test_without_drm_nothing_of_it_is_built_logged_or_saved(device):
-    agent = sear.Agent(drm_cfg(drm=False), action_dim=2, device=device)
-    assert agent.drm is None and not set(drm.METRICS) & set(agent.metric_names)
-    assert agent.state_dict()["drm"] is None
+    agent = train.make_agent(drm_cfg(drm=False), action_dim=2, device=device)
+    assert not isinstance(agent, drm.DrMAgent) and not set(drm.METRICS) & set(agent.metric_names)
+    assert "drm" not in agent.state_dict()
     assert not set(drm.METRICS) & set(agent.update(replay_batch(), step=4))
 
 
 def test_a_snapshot_holds_all_of_drms_state(device):
-    a = sear.Agent(drm_cfg(drm_perturb_every=6), action_dim=2, device=device)
+    a = train.make_agent(drm_cfg(drm_perturb_every=6), action_dim=2, device=device)
     for step in (4, 6):
         a.update(replay_batch(), step)
-    a.drm.awaken_step = 4
-    b = sear.Agent(drm_cfg(drm_perturb_every=6), action_dim=2, device=device)
+    a.awaken_step = 4
+    b = train.make_agent(drm_cfg(drm_perturb_every=6), action_dim=2, device=device)
     b.load_state_dict(copy.deepcopy(a.state_dict()))
-    assert (b.drm.ratio, b.drm.awaken_step) == (a.drm.ratio, 4)
+    assert (b.ratio, b.awake_at) == (a.ratio, 4)
     torch.manual_seed(5)
     ma = a.update(replay_batch(seed=1), 8)
     torch.manual_seed(5)
     mb = b.update(replay_batch(seed=1), 8)
     assert ma == mb
-    assert all(torch.equal(v, b.drm.value.state_dict()[k]) for k, v in a.drm.value.state_dict().items())
+    assert all(torch.equal(v, b.value.state_dict()[k]) for k, v in a.value.state_dict().items())
 
 
 # ---------------------------------------------------------------- flags
 def parse(argv):
-    return cli.parse_args(argv, sear.Config, sear.METHODS)[0]
+    return cli.parse_args(argv, train.Config, sear.METHODS)[0]
 
 
 def test_drm_flags_defaults_and_task_cfgs():
@@ -300,12 +311,12 @@ def released_agent(released, cfg, action_dim=2):
 
 def pairs(theirs, ours):
     return ((theirs.encoder, ours.encoder), (theirs.actor, ours.actor), (theirs.critic, ours.critic),
-            (theirs.critic_target, ours.critic_target), (theirs.value_predictor, ours.drm.value))
+            (theirs.critic_target, ours.critic_target), (theirs.value_predictor, ours.value))
 
 
 def same_weights(released, cfg):
     """Our agent and the released one, the released one given our weights (tensor by tensor, in order)."""
-    ours = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    ours = drm.DrMAgent(cfg, action_dim=2, device=torch.device("cpu"))
     theirs = released_agent(released, cfg)
     with torch.no_grad():
         for t, o in pairs(theirs, ours):
@@ -337,7 +348,7 @@ def test_dormant_ratio_equals_the_released_cal_dormant_ratio(released):
     latent = ours.encode(sear.random_shift(obs)).detach()
     for threshold in (0.025, 0.1, 0.5):
         want = released.utils.cal_dormant_ratio(theirs.actor, latent, 0, percentage=threshold)
-        assert drm.dormant_ratio(ours.actor, latent, 0.0, threshold=threshold) == want
+        assert drm.dormant_ratio(ours.actor, latent, threshold=threshold) == want
     assert want > 0.05
 
 
@@ -346,12 +357,12 @@ def test_std_lambda_and_perturb_factor_equal_the_released(released):
         theirs, ours = same_weights(released, drm_cfg(drm_max_perturb=max_perturb))
         for ratio in (0.0, 0.05, 0.2, 0.37, 0.9, 1.0):
             for awaken in (None, 3000):
-                theirs.dormant_ratio = ours.drm.ratio = ratio
-                theirs.awaken_step = ours.drm.awaken_step = awaken
-                for step in (3000, 5000, 60_000, 10**6):
-                    assert ours.std(step) == theirs.stddev(step), (ratio, awaken, step)
-                assert ours.drm.lam == theirs.lambda_
-                assert ours.drm.perturb_factor() == theirs.perturb_factor(0)
+                theirs.dormant_ratio = ours.ratio = ratio
+                theirs.awaken_step = ours.awaken_step = awaken
+                for step in (3000, 5000, 60_000, 10**6):  # float64 on the device: torch's exp, not libm's
+                    assert ours.std(step) == pytest.approx(theirs.stddev(step), rel=1e-12), (ratio, awaken, step)
+                assert ours.lam == pytest.approx(theirs.lambda_, rel=1e-12, abs=1e-300)
+                assert ours.perturb_factor() == pytest.approx(theirs.perturb_factor(0), rel=1e-15)
 
 
 def test_shrink_and_perturb_equals_the_released_on_the_same_rng(released):
@@ -363,15 +374,15 @@ def test_shrink_and_perturb_equals_the_released_on_the_same_rng(released):
         for t, o in pairs(theirs, ours):
             for vt, vo in zip(t.state_dict().values(), o.state_dict().values()):
                 vt.copy_(vo)
-    theirs.dormant_ratio = ours.drm.ratio = 0.3
+    theirs.dormant_ratio = ours.ratio = 0.3
     torch.manual_seed(11)
     theirs.perturb(100_000)
     rng_theirs = torch.get_rng_state()
     torch.manual_seed(11)
-    ours.drm.perturb_if_due(100_000)
+    ours.perturb_if_due(100_000)
     assert torch.equal(torch.get_rng_state(), rng_theirs)
     assert_same_weights(theirs, ours)
-    assert not ours.model_opt.state and not ours.actor_opt.state and not ours.drm.value_opt.state
+    assert all(never_stepped(s) for opt in (ours.model_opt, ours.actor_opt, ours.value_opt) for s in opt.state.values())
     assert all(not opt.state for opt in (theirs.encoder_opt, theirs.critic_opt, theirs.actor_opt, theirs.predictor_opt))
 
 
@@ -382,9 +393,9 @@ def test_value_step_equals_the_released_update_predictor(released):
     action = torch.rand(16, 2) * 2 - 1
     for _ in range(3):
         want = theirs.update_predictor(latent, action)["predictor_loss"]
-        got = ours.drm.observe(latent, action, 5000)["value_loss"]
+        got = ours.observe(latent, action, 5000)["value_loss"]
         assert got == pytest.approx(want, rel=1e-6)
-    for vt, vo in zip(theirs.value_predictor.parameters(), ours.drm.value.parameters()):
+    for vt, vo in zip(theirs.value_predictor.parameters(), ours.value.parameters()):
         torch.testing.assert_close(vt, vo, rtol=1e-6, atol=1e-8)
 
 
@@ -397,7 +408,7 @@ def test_whole_updates_equal_the_released_on_the_same_weights_and_batch(released
     gradient's size, so a gradient that rounding moves across 0 moves its weight by 2 lr."""
     theirs, ours = same_weights(released, drm_cfg(drm_target_ratio=0.6))  # lambda ~0.6 here: the blend counts
     if awake:
-        theirs.awaken_step = ours.drm.awaken_step = 90_000
+        theirs.awaken_step = ours.awaken_step = 90_000
     for i, step in enumerate((100_000, 100_002, 100_004)):
         batch = replay_batch(n=16, seed=i)
         obs, mask, action, reward, discount, next_obs, _ = batch
@@ -405,7 +416,7 @@ def test_whole_updates_equal_the_released_on_the_same_weights_and_batch(released
         want = theirs.update(iter([(obs, action, reward, discount, next_obs)]), step)
         torch.manual_seed(100 + i)
         got = ours.update(batch, step)
-        assert got["dormant_ratio"] == want["actor_dormant_ratio"] and ours.drm.awaken_step == theirs.awaken_step
+        assert got["dormant_ratio"] == want["actor_dormant_ratio"] and ours.awake_at == theirs.awaken_step
         for ours_name, their_name in (("critic_loss", "critic_loss"), ("actor_loss", "actor_loss"),
                                       ("value_loss", "predictor_loss")):
             assert got[ours_name] == pytest.approx(want[their_name], rel=1e-4, abs=1e-6), ours_name

@@ -193,14 +193,14 @@ def test_a_second_sigterm_stops_a_run_inside_one_long_native_call_within_seconds
     SIGTERMs until the call ended. The second now ends it within cli.TermSignal.GRACE (5 s), in one
     line, exit 143; the run had no snapshot, so its directory goes."""
     script = tmp_path / "stuck.py"
-    script.write_text("import sys, torch, sear\n"
+    script.write_text("import sys, torch, sear, train\n"
                       "real = sear.Agent.__init__\n"
                       "def stuck(self, *args):\n"
                       "    print('busy', flush=True)\n"
                       "    torch.linalg.eigvals(torch.randn(6000, 6000))  # one call of a minute or more\n"
                       "    real(self, *args)\n"
                       "sear.Agent.__init__ = stuck\n"
-                      "sys.exit(sear.main(sys.argv[1:]))\n")
+                      "sys.exit(train.main(sys.argv[1:]))\n")
     p = subprocess.Popen([sys.executable, str(script), "--run-root", str(tmp_path / "runs"), "--env", "walker-walk",
                           *TINY], cwd=tmp_path, env={**ENV, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)

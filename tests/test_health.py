@@ -18,10 +18,10 @@ QUIET = [*TINY, "--eval-every", "100000", "--log-every", "0"]
 
 
 def patched_run(tmp_path, patch: str, args, timeout=600):
-    """sear.py's main with `patch` (Python, run after `import cli, experiment, sear, torch`) applied."""
+    """sear.py's main with `patch` (Python, run after `import cli, experiment, sear, torch, train`) applied."""
     script = tmp_path / "patched_sear.py"
-    script.write_text("import sys\nimport cli, experiment, sear, torch\n" + patch
-                      + "\nsys.exit(sear.main(sys.argv[1:]))\n")
+    script.write_text("import sys\nimport cli, experiment, sear, torch, train\n" + patch
+                      + "\nsys.exit(train.main(sys.argv[1:]))\n")
     return subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, cwd=tmp_path, env={**ENV, "PYTHONPATH": str(ROOT)})
 
@@ -153,13 +153,15 @@ def test_a_value_that_is_not_finite_raises_and_a_non_finite_action_never_reaches
 # ------------------------------------------------------------------------ health: end to end
 def test_a_loss_that_is_not_finite_stops_the_run_in_one_line_and_the_last_snapshot_stands(tmp_path):
     """c1 = 1e38 (a finite flag) makes Eq. 6 overflow at the first update: the second update's losses
-    are NaN. The run stops there, before any NaN action reaches MuJoCo (no PhysicsError), with exit 1;
-    the snapshot of frame 16 (before the first update) stands and holds finite weights."""
+    are NaN (frame 24). The metrics stay on the device until a log line, but the encoder went NaN with
+    them: the next action (frame 26) is NaN and stops the run before it reaches MuJoCo (no PhysicsError),
+    with exit 1 and the first value that was not finite as the cause; the snapshot of frame 16 (before
+    the first update) stands and holds finite weights."""
     r = run(["--run-root", tmp_path / "runs", "--env", "walker-walk", *QUIET, "--frames", "400", "--recon-coef", "1e38",
              "--seed-frames", "20", "--exploration-steps", "0", "--snapshot-minutes", "0"], tmp_path)
     run_dir = only_dir(tmp_path / "runs")
     assert r.returncode == 1, r.stderr[-3000:]
-    assert re.fullmatch(r"sear.py: error: the run diverged at frame 24: recon_loss is nan at update 2 of this process "
+    assert re.fullmatch(r"sear.py: error: the run diverged at frame 26: recon_loss is nan at update 2 of this process "
                         r"\(parameters no longer finite: encoder, aux\); it stopped before that reached the simulator; "
                         r"the last snapshot \(frame 16\) stands: python sear.py --resume " + re.escape(str(run_dir))
                         + r" continues from it \(with --save-buffer it replays the same updates\): docs/health.md",

@@ -11,6 +11,7 @@ import torch
 import experiment
 import plot
 import sear
+import train
 from tests.test_cli import ROOT, TINY, rows, run, tree_digest
 
 # Two evaluations (frame 0 and the end of the budget), each 2 episodes of 8 agent steps.
@@ -82,7 +83,7 @@ def test_save_video_writes_the_first_episode_of_each_evaluation(tiny_runs):
 def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores, panels, device):
     pytest.importorskip("imageio_ffmpeg", reason="films need imageio-ffmpeg (requirements.txt; sear.py checks it at start)")
     import imageio.v2 as imageio
-    cfg = sear.Config(method=method, frame_stack=3, latent_dim=64, hidden_dim=32)
+    cfg = train.Config(method=method, frame_stack=3, latent_dim=64, hidden_dim=32)
     agent = sear.Agent(cfg, 2, device)
 
     class Env:  # the two calls evaluate() makes; a moving square to film, on the robot's mask
@@ -127,7 +128,7 @@ def test_maps_grid_shape_and_overlay():
 
 
 def test_last_conv_maps_are_the_relu_output_of_the_last_convolution():
-    cfg = sear.Config(latent_dim=64, hidden_dim=32)
+    cfg = train.Config(latent_dim=64, hidden_dim=32)
     agent = sear.Agent(cfg, 2, torch.device("cpu"))
     pixels = np.random.default_rng(0).integers(0, 255, (2, 9, 84, 84), dtype=np.uint8)
     maps = plot.last_conv_maps(agent, pixels, np.zeros((2, 3, 84, 84), bool))

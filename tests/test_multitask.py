@@ -20,6 +20,7 @@ import cli
 import envs
 import experiment
 import sear
+import train
 from tests.test_envs import raw_robot, rand_vecs, is_one_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -140,33 +141,33 @@ def test_random_kitchen_camera_moves_image_and_mask(kitchen):
 
 # ---------------------------------------------------------------- sear.py: defaults, evaluation plan
 def test_multitask_defaults_apply_to_task_sets_unless_given():
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10"], sear.Config, sear.METHODS)
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10"], train.Config, sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (512, 2_000_000)
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10", "--recipe", "authors"], sear.Config, sear.METHODS)
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10", "--recipe", "authors"], train.Config, sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (4096, 2_000_000)   # the authors' code keeps 4096
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt50", "--latent-dim", "256", "--std-steps", "7"], sear.Config,
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt50", "--latent-dim", "256", "--std-steps", "7"], train.Config,
                                sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (256, 7)
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-door-open"], sear.Config, sear.METHODS)
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-door-open"], train.Config, sear.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (4096, 500_000)
 
 
 def test_evaluation_runs_every_task():
-    cfg = sear.Config(eval_episodes=10)
+    cfg = train.Config(eval_episodes=10)
     three = types.SimpleNamespace(unwrapped=types.SimpleNamespace(tasks=("a", "b", "c")))
     assert experiment.eval_tasks(three, cfg) == ["a"] * 4 + ["b"] * 4 + ["c"] * 4   # ceil(10 / 3)
     cfg.eval_episodes_per_task = 2
     assert experiment.eval_tasks(three, cfg) == ["a", "a", "b", "b", "c", "c"]
     one = types.SimpleNamespace(unwrapped=types.SimpleNamespace())
     assert experiment.eval_tasks(one, cfg) == [None] * 10
-    episodes = [sear.Episode(1.0, False, "a"), sear.Episode(3.0, True, "a")]
+    episodes = [train.Episode(1.0, False, "a"), train.Episode(3.0, True, "a")]
     assert experiment.eval_columns(episodes) == {"success": 0.5, "return/a": 2.0, "success/a": 0.5}
 
 
 # ---------------------------------------------------------------- transfer
 @pytest.mark.parametrize("parts", ["encoder", "encoder+decoders", "all"])
 def test_copy_parts_copies_exactly_the_named_parts(parts, device):
-    cfg = sear.Config(latent_dim=64, hidden_dim=32, feature_dim=8)
+    cfg = train.Config(latent_dim=64, hidden_dim=32, feature_dim=8)
     torch.manual_seed(0)
     source = sear.Agent(cfg, 4, device)
     with torch.no_grad():  # stands for training: every weight moves
@@ -234,7 +235,7 @@ def test_finetune_starts_from_the_whole_source_agent_by_default(mt3_run, tmp_pat
     source_dir, _ = mt3_run
     args = ["--run-root", str(tmp_path / "runs"), "--env", "metaworld-peg-insert-side", "--init-from",
             str(source_dir), *TINY, "--frames", "8", "--seed-frames", "100"]
-    assert sear.main(args) == 0  # the CLI in this process; no update: the seed frames outlast the budget
+    assert train.main(args) == 0  # the CLI in this process; no update: the seed frames outlast the budget
     (run_dir,) = (tmp_path / "runs").iterdir()
     config = json.loads((run_dir / "config.json").read_text())
     assert config["init_from"] == str(source_dir) and config["init_parts"] == "all"
@@ -255,7 +256,7 @@ def test_finetune_starts_from_the_whole_source_agent_by_default(mt3_run, tmp_pat
 ])
 def test_init_from_refuses_mismatches_and_creates_nothing(mt3_run, tmp_path, capsys, extra, message):
     source_dir, _ = mt3_run
-    code = sear.main(["--run-root", str(tmp_path / "runs"), "--init-from", str(source_dir), *TINY, *extra])
+    code = train.main(["--run-root", str(tmp_path / "runs"), "--init-from", str(source_dir), *TINY, *extra])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, err
     assert not (tmp_path / "runs").exists()
@@ -267,7 +268,7 @@ def test_init_from_a_run_without_snapshot(tmp_path, capsys, holds, says):
     (tmp_path / "source").mkdir()
     if holds:
         (tmp_path / "source" / holds).write_text("{}")
-    code = sear.main(["--run-root", str(tmp_path / "runs"), "--init-from", str(tmp_path / "source")])
+    code = train.main(["--run-root", str(tmp_path / "runs"), "--init-from", str(tmp_path / "source")])
     err = capsys.readouterr().err
     assert code == 2 and err.startswith("sear.py: error: --init-from:") and says in err, err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "runs").exists()
@@ -281,7 +282,7 @@ def test_init_from_a_run_without_snapshot(tmp_path, capsys, holds, says):
     (["--env", "walker-walk", "--kitchen-camera", "random"], "a random kitchen camera only applies to kitchen-*"),
 ])
 def test_bad_multitask_flags_are_one_line(tmp_path, capsys, args, message):
-    code = sear.main(["--run-root", str(tmp_path / "runs"), *TINY, *args])
+    code = train.main(["--run-root", str(tmp_path / "runs"), *TINY, *args])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, err
     assert not (tmp_path / "runs").exists()

@@ -43,7 +43,8 @@ def test_a_run_dir_from_ca5eab9_resumes_and_finishes(tmp_path):
     # curl_dim and curl_coef); and what a resume may change, changed.
     import cli
     import sear
-    now = cli.config_dict(sear.Config(), cli.RunConfig())
+    import train
+    now = cli.config_dict(train.Config(), cli.RunConfig())
     old = json.loads(config)
     saved = {**{k: old.get(k, v) for k, v in now.items()}, "frames": 48, "resume": str(run_dir)}
     assert snapshot["config"] == saved

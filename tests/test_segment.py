@@ -21,6 +21,7 @@ sys.path.insert(0, str(ROOT))
 
 import envs  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 import segment  # noqa: E402
 
 TINY = ["--frames", "24", "--seed-frames", "12", "--batch-size", "4", "--eval-every", "24",
@@ -168,7 +169,7 @@ def test_learned_mask_replaces_the_simulator_and_noise_composes(tmp_path):
 
 
 def run_sear(tmp_path, capsys, *extra):
-    code = sear.main(["--env", "walker-walk", "--run-root", str(tmp_path / "runs"), *TINY, *extra])
+    code = train.main(["--env", "walker-walk", "--run-root", str(tmp_path / "runs"), *TINY, *extra])
     return code, capsys.readouterr()
 
 
