@@ -12,14 +12,20 @@ Usage:
   python sweep.py --grid kitchen --status               # queued / running / done / failed (the flags the
                                                         # sweep ran with need not be repeated: sweep.json has them)
   python sweep.py --grid kitchen --report               # per task mean +- 95% CI; over tasks IQM (rliable)
-  python sweep.py --grid kitchen --partition gpu        # on SLURM (detected through `srun`)
+  cd sweeps/kitchen && python ../../sweep.py --status   # inside a sweep's folder: that sweep
+  python sweep.py --grid kitchen --engine slurm --partition gpu   # a SLURM array; re-runs of the sweep
+                                                        # stay on SLURM (sweep.json); default: this machine
 
 Flags that sweep.py does not know go to sear.py (after `--` or anywhere on the line); sear.py's
-own parser checks them before anything is created, so a typo fails the whole sweep at once.
+own parser checks them before anything is created, so a typo fails the whole sweep at once. A flag
+neither has is named with the closest of both: "no flag --stauts; did you mean --status?".
+Memory per job (SLURM's --mem; locally, how many run at once): a measured run's peak for the job's
+method, batch and replay, plus 25% (--mem-gb sets it); a job that no node holds fails up front.
 
 Sweep folder: <out>/<sweep>/ (--name; default the grid's name, else custom)
   sweep.json    the record of what was submitted there: per sweep (grid and sear.py flags) its jobs, so
-                that --status and --report need only the folder (--name or --grid), not the flags again
+                that --status and --report need only the folder (--name or --grid), not the flags again;
+                and the engine the folder's sweeps ran on, which a re-run without --engine keeps
 Job directory: <out>/<sweep>/<env>__<method>__<seed>__<hash of the other sear.py flags>/
   job.json      what the job is: the sear.py arguments of a fresh run and of a resume
   run/          sear.py's --run-root: exactly one run directory
@@ -42,6 +48,7 @@ import fcntl
 import hashlib
 import io
 import json
+import math
 import os
 import re
 import shlex
@@ -208,38 +215,52 @@ def parse_names(tokens: list[str]) -> tuple[str, ...]:
     return tuple(names)
 
 
+def sear_classes():
+    """(Config, METHODS) of the run sear.py starts (train.py's): the one place that names the module holding them."""
+    import train
+    return train.Config, train.METHODS
+
+
 def sear_flag_names() -> set[str]:
     """Every flag sear.py's parser has: one per Config field, plus --no-X for booleans."""
     import cli
-    import sear
-    import train
-    return cli.flag_names(train.Config)
+    return cli.flag_names(sear_classes()[0])
+
+
+def sweep_flag_names() -> set[str]:
+    return {s for a in build_parser()._actions for s in a.option_strings if s.startswith("--")}
 
 
 def check_passthrough(tokens: list[str]) -> None:
-    """Exact sear.py flag names only: argparse would take an abbreviation such as --see for --seed."""
-    known = sear_flag_names()
+    """Exact sear.py flag names only: argparse would take an abbreviation such as --see for --seed. A name
+    neither sweep.py nor sear.py has is answered with the closest of both: --stauts is a typo of --status,
+    not a sear.py flag."""
+    if not any(tok.startswith("--") for tok in tokens):
+        return  # no sear.py import (torch) for --status / --report without flags
+    known, ours = sear_flag_names(), sweep_flag_names()
     for tok in tokens:
         if not tok.startswith("--"):
             continue
         name = tok.split("=", 1)[0]
         if name in RESERVED:
             raise SweepError(f"{name} is set by sweep.py; use {RESERVED[name]}")
-        if name not in known:
-            import cli
-            raise SweepError(f"sear.py has {cli.no_such_flag(name, known)}")
+        if name in known:
+            continue
+        if name in ours:  # only after --: before it, sweep.py's parser takes its own flags
+            raise SweepError(f"{name} is sweep.py's, not sear.py's: put it before --")
+        import cli
+        raise SweepError(cli.no_such_flag(name, known | ours))
 
 
 def sear_config(argv: list[str], what: str):
     """sear.py's own parser and checks on argv (nothing is created), and the env name by envs.py."""
     import cli
     import envs
-    import sear
-    import train
+    Config, methods = sear_classes()
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):  # argparse prints its one-line error, then exits
-            cfg, run, _ = cli.parse_args(argv, train.Config, sear.METHODS)
+            cfg, run, _ = cli.parse_args(argv, Config, methods)
         envs.default_action_repeat(cfg.env)    # unknown env names fail here, not hours later
     except SystemExit:
         raise SweepError(f"sear.py rejects {what}: {err.getvalue().strip().removeprefix('sear.py: error: ')}")
@@ -251,9 +272,7 @@ def sear_config(argv: list[str], what: str):
 def config_key(cfg) -> str:
     """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys alone."""
     import cli
-    import sear
-    import train
-    defaults = cli.config_dict(train.Config(), cli.RunConfig())
+    defaults = cli.config_dict(sear_classes()[0](), cli.RunConfig())
     diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
     return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
 
@@ -476,8 +495,9 @@ def is_done(job_dir: str) -> bool:
     return os.path.exists(os.path.join(job_dir, "DONE"))
 
 
-# The sweep folder's record (sweep.json): {"sweeps": [{"grid", "flags", "command", "jobs"}]}, one entry per
-# grid and sear.py flags submitted to the folder, its jobs the JobSpecs of every submission with them.
+# The sweep folder's record (sweep.json): {"engine", "sweeps": [{"grid", "flags", "command", "jobs"}]}, one
+# entry per grid and sear.py flags submitted to the folder, its jobs the JobSpecs of every submission with
+# them; "engine" (local or slurm) the one the folder's sweeps last ran on, and run on again unless --engine.
 RECORD = "sweep.json"
 
 
@@ -485,7 +505,21 @@ def read_record(sweep_dir: str) -> list[dict]:
     return (read_json(os.path.join(sweep_dir, RECORD)) or {}).get("sweeps", [])
 
 
-def record_sweep(sweep_dir: str, grid: str | None, flags: list[str], command: list[str], specs: list[JobSpec]) -> int:
+def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
+    """(engine, where it is written) of a sweep folder: its record, else (folders from before the record
+    named it) a job queued or run on SLURM; (None, "") for a new folder."""
+    engine = (read_json(os.path.join(sweep_dir, RECORD)) or {}).get("engine")
+    if engine in ("local", "slurm"):
+        return engine, f"{os.path.join(sweep_dir, RECORD)} records it"
+    for name in sorted(os.listdir(sweep_dir)) if os.path.isdir(sweep_dir) else []:
+        status = read_json(os.path.join(sweep_dir, name, "status.json")) or {}
+        if any((status.get(k) or {}).get("cluster") == "slurm" for k in ("by", "owner")):
+            return "slurm", f"the jobs in {sweep_dir} went to SLURM"
+    return None, ""
+
+
+def record_sweep(sweep_dir: str, grid: str | None, flags: list[str], command: list[str], specs: list[JobSpec],
+                 engine: str) -> int:
     """Add `specs` to the folder's record, under their grid and sear.py flags: the same sweep run again
     (say for more seeds) adds its jobs to its entry; other flags make a second entry. -> sweeps recorded."""
     os.makedirs(sweep_dir, exist_ok=True)
@@ -499,7 +533,7 @@ def record_sweep(sweep_dir: str, grid: str | None, flags: list[str], command: li
         jobs = {j["name"]: j for j in entry["jobs"]}
         jobs.update({s.name: {"name": s.name, **dataclasses.asdict(s)} for s in specs})
         entry["jobs"] = list(jobs.values())
-        write_json(os.path.join(sweep_dir, RECORD), {"sweeps": sweeps})
+        write_json(os.path.join(sweep_dir, RECORD), {"engine": engine, "sweeps": sweeps})
     return len(sweeps)
 
 
@@ -601,20 +635,30 @@ def cpu_count() -> int:
         return os.cpu_count() or 1
 
 
-def pick_engine(args) -> str:
-    engine = submitit.AutoExecutor.which() if args.engine == "auto" else args.engine
-    if engine == "slurm" and shutil.which("srun") is None:
-        raise SweepError("--engine slurm: no SLURM on this machine (srun not found)")
+def pick_engine(args) -> tuple[str, str]:
+    """(engine, why): --engine, else the one the sweep's folder records, else this machine. Never SLURM
+    because srun happens to be on the PATH: that sent a login node's test sweep to a queue unasked."""
+    srun = shutil.which("srun") is not None
+    recorded, where = recorded_engine(os.path.join(args.out, args.sweep))
+    if args.engine:
+        engine, why = args.engine, f"--engine {args.engine}"
+    elif recorded:
+        other = "local runs it here" if recorded == "slurm" else "slurm submits it to SLURM"
+        engine, why = recorded, f"{where}; --engine {other}"
+    else:
+        engine, why = "local", "default" + ("; --engine slurm to submit to SLURM, whose srun is on the PATH"
+                                            if srun else "")
+    if engine == "slurm" and not srun:
+        raise SweepError(f"engine slurm ({why}), but srun is not on this machine's PATH")
     slurm_only = [f for f, v in (("--partition", args.partition), ("--account", args.account),
                                  ("--slurm-array-parallelism", args.slurm_array_parallelism)) if v is not None]
     if engine != "slurm" and slurm_only:
-        why = " (srun not found)" if args.engine == "auto" else ""
-        raise SweepError(f"{slurm_only[0]} needs SLURM, but the engine is {engine}{why}")
+        raise SweepError(f"{slurm_only[0]} needs SLURM, but the engine is {engine} ({why})")
     for name in ("jobs", "threads", "time_limit", "gpus_per_job", "mem_gb", "slurm_array_parallelism"):
         value, least = getattr(args, name), 0 if name == "gpus_per_job" else 1
         if value is not None and value < least:
             raise SweepError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
-    return engine
+    return engine, why
 
 
 def gres_gpus(gres: str) -> int:
@@ -628,6 +672,7 @@ class Partition:
     name: str    # for messages: "partition gpu" or "the default partition"
     gpus: int    # the most GPUs one node has
     cpus: int    # the most CPUs one node has
+    mem_mb: int  # the most memory one node has (RealMemory, MB as SLURM counts them: 1024 to its GB)
 
 
 def slurm_partition(partition: str | None) -> Partition | None:
@@ -635,22 +680,24 @@ def slurm_partition(partition: str | None) -> Partition | None:
     if shutil.which("sinfo") is None:
         return None
     try:
-        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c"], capture_output=True, text=True, timeout=60)
+        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c|%m"], capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired):
         return None
-    rows = [line.split("|") for line in r.stdout.splitlines() if line.count("|") == 2] if r.returncode == 0 else []
+    rows = [line.split("|") for line in r.stdout.splitlines() if line.count("|") == 3] if r.returncode == 0 else []
     if not rows:
         return None
-    names = list(dict.fromkeys(name.rstrip("*") for name, _, _ in rows))
+    names = list(dict.fromkeys(row[0].rstrip("*") for row in rows))
     if partition is not None and partition not in names:
         raise SweepError(f"SLURM has no partition '{partition}' (sinfo lists {', '.join(names)})")
-    mine = [(gres, cpus) for name, gres, cpus in rows
-            if (name.rstrip("*") == partition if partition else name.endswith("*"))]
+    mine = [row[1:] for row in rows if (row[0].rstrip("*") == partition if partition else row[0].endswith("*"))]
     if not mine:
         return None
+
+    def most(values):  # '64', '64+' (nodes that differ), 'n/a': the number
+        return max(int(re.match(r"\d*", v)[0] or 0) for v in values)
     return Partition(f"partition {partition}" if partition else "the default partition",
-                     gpus=max(gres_gpus(g) for g, _ in mine),
-                     cpus=max(int(re.match(r"\d*", c)[0] or 0) for _, c in mine))
+                     gpus=max(gres_gpus(g) for g, _, _ in mine), cpus=most(c for _, c, _ in mine),
+                     mem_mb=most(m for _, _, m in mine))
 
 
 def local_gpus() -> list[str]:
@@ -691,19 +738,72 @@ def check_cpus(args, part: Partition | None) -> None:
                          f"(sinfo), so the jobs would never start")
 
 
-def make_executor(args, engine: str, folder: str, gpus: int):
+# What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the CPU): 0.89 GB
+# until the first update, 2.66 GB at the peak of SEAR's batch-256 updates, the replay still nearly empty;
+# then the replay, ReplayBuffer.bytes_per_transition for each transition it holds. The DrQ encoder's
+# methods (drq, rgbm) peak 0.65 GB lower (bench_agent.py's peak RSS at batch 256: drq 1.52, sear 2.17 GB);
+# the other methods, unmeasured, count as SEAR. What the updates add scales with the batch.
+START_GB = 0.89
+PEAK_GB = {"pooled": 2.66, "drq": 2.66 - 0.65}  # by sear.METHODS' encoder, at batch 256
+REPLAY_BYTES = 22_168  # per transition at 84x84 with Adroit's 28 actions, the most of any task (walker: 22,080)
+HEADROOM = 1.25        # one run's peak; another task, renderer or allocator's slack moves it: a quarter more
+
+
+def run_memory(cfg) -> tuple[float, float, int, str]:
+    """(peak GB, of it the agent's, transitions the replay holds at most, how) of a sear.py run."""
+    import envs
+    encoder = sear_classes()[1][cfg.method].encoder
+    agent = START_GB + (PEAK_GB[encoder] - START_GB) * cfg.batch_size / 256
+    held = min(cfg.replay_size, cfg.frames // (cfg.action_repeat or envs.default_action_repeat(cfg.env)))
+    scaled = "" if cfg.batch_size == 256 else f" scaled to batch {cfg.batch_size}"
+    how = (f"{cfg.method}: {'drq' if encoder == 'drq' else 'sear'}'s measured peak at batch 256{scaled}, "
+           f"{agent:.2f} GB, + a replay of {held:,} transitions x {REPLAY_BYTES / 1e3:.0f} kB, "
+           f"{held * REPLAY_BYTES / 1e9:.2f} GB, + {HEADROOM - 1:.0%}")
+    return agent + held * REPLAY_BYTES / 1e9, agent, held, how
+
+
+def local_memory_gb() -> float:
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+
+
+def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec]) -> tuple[int, float | None, str]:
+    """(GB per job, GB of the largest node or None when unknown, the line that says both and why): --mem-gb,
+    else the largest job's measured peak plus headroom. One that no node holds fails here, in one line."""
+    distinct = {(s.env, s.variant, s.key): s for s in specs}.values()  # the seed changes nothing
+    with contextlib.redirect_stdout(io.StringIO()):  # the recipe's notes, printed once already by plan()
+        peak, agent, held, how = max(run_memory(sear_config(list(s.args), s.name)) for s in distinct)
+    need = max(1, math.ceil(peak * HEADROOM))
+    asked = args.mem_gb or need
+    if engine == "local":
+        node, where = local_memory_gb(), "this machine has"
+    elif part is not None and part.mem_mb:
+        node, where = part.mem_mb / 1024, f"a node of {part.name} has at most"
+    else:
+        node, where = None, ""
+    have = (f"{where} {node:.1f} GB" + (" (sinfo)" if engine == "slurm" else "")) if node else ""
+    if node is not None and asked > node:
+        if args.mem_gb:
+            raise SweepError(f"--mem-gb {asked}: {have}")
+        fits = int((math.floor(node) / HEADROOM - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000  # whole GB asked
+        hint = f"; --replay-size {fits} fits" if 0 < fits < held else ""
+        raise SweepError(f"a job needs {need} GB ({how}), but {have}{hint}")
+    why = f"--mem-gb; the estimate is {need} GB" if args.mem_gb else f"{how}; --mem-gb sets it"
+    return asked, node, f"memory: {asked} GB per job ({why})" + (f"; {have}" if have else "")
+
+
+def make_executor(args, engine: str, folder: str, gpus: int, mem_gb: int | None):
     executor = submitit.AutoExecutor(folder=folder, cluster=engine)
     # Locally each job gets its GPUs through CUDA_VISIBLE_DEVICES (SearJob.devices), not submitit's
     # (which would give every job the same first ones); on SLURM, no GPU request unless there are GPUs.
     params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", cpus_per_task=args.threads,
-                  gpus_per_node=(gpus or None) if engine != "local" else 0, mem_gb=args.mem_gb,
+                  gpus_per_node=(gpus or None) if engine != "local" else 0, mem_gb=mem_gb,
                   slurm_partition=args.partition, slurm_account=args.account,
                   slurm_array_parallelism=args.slurm_array_parallelism)
     executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
     return executor
 
 
-def submit_array(executor, jobs: list, args) -> list:
+def submit_array(executor, jobs: list, mem_gb: int) -> list:
     """One SLURM array; SweepError with sbatch's own reason (one line) if it refuses."""
     err = io.StringIO()
     try:
@@ -717,7 +817,7 @@ def submit_array(executor, jobs: list, args) -> list:
         if re.search(r"gres|gpu", reason, re.I):
             hint = " (--gpus-per-job 0 submits without a GPU request)"
         elif re.search(r"memory|node configuration", reason, re.I):
-            hint = f" (does a node have --mem-gb {args.mem_gb} GB?)"
+            hint = f" (each job asks {mem_gb} GB: does a node have it? --mem-gb sets it)"
         raise SweepError(f"sbatch refused the {len(jobs)} job(s): {reason[:300]}{hint}") from None
     return submitted
 
@@ -984,19 +1084,22 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "METHOD+drm runs METHOD with --drm (drq+drm is DrM)")
     what.add_argument("--seeds", nargs="+", help="seeds: 1-5, 1,3,7 or 1-3 9 (default: the grid's, else 1)")
     what.add_argument("--name", help="sweep folder under --out (default: the grid's name, else custom)")
-    what.add_argument("--out", default="sweeps", help="folder of sweeps (default: sweeps)")
+    what.add_argument("--out", help="folder of sweeps (default: sweeps; --status and --report inside a sweep's "
+                                   "folder: that folder)")
     do = p.add_argument_group("what to do (default: run what is not finished)")
     do.add_argument("--status", action="store_true", help="print a table of the jobs' states and exit")
     do.add_argument("--report", action="store_true", help="draw report.png / report.md and exit")
     do.add_argument("--dry-run", action="store_true", help="print the jobs and their sear.py commands, run nothing")
-    eng = p.add_argument_group("engine (submitit: SLURM when srun is found, else this machine)")
-    eng.add_argument("--engine", choices=("auto", "local", "slurm"), default="auto")
+    eng = p.add_argument_group("engine (submitit: this machine, or a SLURM array)")
+    eng.add_argument("--engine", choices=("local", "slurm"),
+                     help="default: the one the sweep's folder records (sweep.json), else local")
     eng.add_argument("--jobs", type=int, help="local: jobs at a time (default: cores // --threads)")
     eng.add_argument("--threads", type=int, default=1, help="torch threads per job (OMP_NUM_THREADS; default 1)")
     eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, the authors')")
     eng.add_argument("--gpus-per-job", type=int, help="default: 1 where the partition (sinfo) or this machine "
                      "has GPUs, else 0; locally each job gets its own, round robin (CUDA_VISIBLE_DEVICES)")
-    eng.add_argument("--mem-gb", type=int, default=32, help="SLURM memory per job (default 32; replay is ~5.5 GB)")
+    eng.add_argument("--mem-gb", type=int, help="memory per job (default: a measured run's peak for the job's "
+                     "method, batch and replay, + 25%%); SLURM asks it, locally it bounds the jobs at a time")
     eng.add_argument("--partition", help="SLURM partition")
     eng.add_argument("--account", help="SLURM account")
     eng.add_argument("--slurm-array-parallelism", type=int, help="SLURM: array tasks at a time")
@@ -1105,10 +1208,13 @@ def main(argv: list[str] | None = None) -> int:
     args, unknown = build_parser().parse_known_args(ours)
     args.flags, args.argv = unknown + after, argv
     try:
+        check_passthrough(args.flags)  # first: --stauts is a typo of --status, whatever else is on the line
         if args.status or args.report:  # a sweep already submitted: its record knows the flags
+            inside_sweep(args)
             args.sweep = sweep_name(args)
             specs, grid = find_sweep(args, args.flags, "status" if args.status else "report")
         else:
+            args.out = args.out or "sweeps"
             args.sweep, specs, grid = plan(args, args.flags)
         if args.status:
             print(status_table(args.out, specs))
@@ -1116,23 +1222,40 @@ def main(argv: list[str] | None = None) -> int:
         if args.report:
             report(args.out, args.sweep, specs, grid.metric if grid else None)
             return 0
-        engine = pick_engine(args)
-        return run(args, specs, grid, engine)
+        return run(args, specs, grid, *pick_engine(args))
     except SweepError as e:
         print(f"sweep.py: error: {e}", file=sys.stderr)
         return 2
 
 
-def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
+def inside_sweep(args) -> None:
+    """--status / --report in a sweep's folder (it holds sweep.json, or job folders): that folder, unless
+    --out or --name say which."""
+    if args.out is None and args.name is None and (os.path.exists(RECORD) or folder_specs(".")):
+        args.out, args.name = os.path.split(os.getcwd())
+    args.out = args.out or "sweeps"
+
+
+def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) -> int:
     sweep_dir = os.path.join(args.out, args.sweep)
     dirs = {spec: os.path.abspath(os.path.join(sweep_dir, spec.name)) for spec in specs}
     done = [s for s in specs if is_done(dirs[s])]
     busy = [s for s in specs if s not in done and alive(read_json(os.path.join(dirs[s], "lock"))) is not False]
     todo = [s for s in specs if s not in done and s not in busy]
-    parallel = args.jobs or max(1, cpu_count() // args.threads)
     part = slurm_partition(args.partition) if engine == "slurm" else None
     check_cpus(args, part)
     gpus, gpu_note = job_gpus(args, engine, part)
+    mem_gb, node_gb, mem_line = job_memory(args, engine, part, todo) if todo else (args.mem_gb, None, "")
+    print(f"engine: {engine} ({why})")
+    parallel = args.jobs or max(1, cpu_count() // args.threads)
+    if engine == "local" and node_gb and parallel * mem_gb > node_gb:
+        fit = max(1, int(node_gb // mem_gb))  # job_memory refused a job that fits nowhere
+        if args.jobs:
+            mem_line += f"; --jobs {args.jobs} x {mem_gb} GB is more than that"
+        else:
+            mem_line, parallel = mem_line + f", room for {fit} at a time", fit
+    if mem_line:
+        print(mem_line)
     shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
             f"{len({s.seed for s in specs})} seeds"
     where = f"{engine}, {parallel} at a time, {args.threads} thread(s) each" if engine == "local" else engine
@@ -1143,7 +1266,7 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
         for s in todo:
             print(f"{s.name}: sear.py {shlex.join(s.args)}")
         return 0
-    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs)
+    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs, engine)
     if held > 1:
         print(f"note: {sweep_dir} now holds {held} sweeps (other grids or sear.py flags); --status and --report "
               f"then need the sweep's flags after -- to pick one")
@@ -1158,13 +1281,13 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str) -> int:
         os.makedirs(d, exist_ok=True)
         write_json(os.path.join(d, "job.json"), dataclasses.asdict(spec))
         jobs[spec] = SearJob(d, spec.args, spec.resume_args, args.threads, script=SEAR_PY)
-    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus)
+    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
     if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
         import cloudpickle                # they need no `import sweep` from whatever their cwd is
         cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
 
     if engine != "local":  # one SLURM array; this process only submits
-        submitted = submit_array(executor, [jobs[spec] for spec in todo], args)
+        submitted = submit_array(executor, [jobs[spec] for spec in todo], mem_gb)
         for spec, job in zip(todo, submitted):
             mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
         print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with "

@@ -101,8 +101,13 @@ def test_seed_lists_and_ranges():
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--envs", "walker-walk", "--methods", "drq", "--frams", "40"],
-     "sear.py has no flag --frams; did you mean --frames?"),
+    (["--envs", "walker-walk", "--methods", "drq", "--frams", "40"], "no flag --frams; did you mean --frames?"),
+    # a typo of sweep.py's own flag is named as such, not passed on to sear.py or answered with another line
+    (["--stauts"], "no flag --stauts; did you mean --status?"),
+    (["--grid", "kitchen", "--reprot"], "no flag --reprot; did you mean --report?"),
+    (["--grid", "kitchen", "--methods", "sear", "--dry-rnu"], "no flag --dry-rnu; did you mean --dry-run?"),
+    (["--grid", "kitchen", "--status", "--nmae", "k"], "no flag --nmae; did you mean --name?"),
+    (["--grid", "kitchen", "--", "--status"], "--status is sweep.py's, not sear.py's: put it before --"),
     (["--envs", "walkr-walk", "--methods", "drq"], "sear.py rejects walkr-walk drq: unknown env 'walkr-walk'"),
     (["--envs", "walker-walk", "--methods", "dqr"], "invalid choice: 'dqr'"),
     (["--envs", "walker-walk", "--methods", "drq", "--", "--frames", "-5"], "--frames must be > 0, got -5"),
@@ -112,7 +117,9 @@ def test_seed_lists_and_ranges():
     (["--grid", "transfer"], "grid 'transfer' is not available yet"),
     (["--grid", "kitchen", "--methods", "rgbm"], "grid 'kitchen' has no method rgbm"),
     (["--envs", "walker-walk", "--methods", "drq", "--engine", "local", "--partition", "gpu"],
-     "--partition needs SLURM, but the engine is local"),
+     "--partition needs SLURM, but the engine is local (--engine local)"),
+    (["--envs", "walker-walk", "--methods", "drq", "--account", "lab"],
+     "--account needs SLURM, but the engine is local (default"),
     (["--envs", "walker-walk", "--methods", "drq", "--threads", "0"], "--threads must be >= 1, got 0"),
 ])
 def test_bad_input_fails_the_whole_sweep_up_front(tmp_path, capsys, argv, message):
@@ -286,10 +293,10 @@ def test_an_interrupted_run_resumes_from_its_snapshot_or_moves_aside_without_one
 
 
 # ------------------------------------------------------------------------------- SLURM stand-ins
-def fake_slurm(tmp_path, monkeypatch, sinfo="gpu|gpu:4|64\n", sbatch=None):
-    """Stand-in srun (marks a SLURM machine), sinfo (prints `sinfo`: partition|gres|cpus rows), squeue (every
-    job pending) and sbatch (keeps the script it was given, or runs `sbatch` as its body), first on PATH
-    whatever this machine has."""
+def fake_slurm(tmp_path, monkeypatch, sinfo="gpu|gpu:4|64|256000\n", sbatch=None):
+    """Stand-in srun (marks a SLURM machine), sinfo (prints `sinfo`: partition|gres|cpus|memory MB rows),
+    squeue (every job pending) and sbatch (keeps the script it was given, or runs `sbatch` as its body), first
+    on PATH whatever this machine has."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     scripts = {"srun": "exit 0",
@@ -303,12 +310,12 @@ def fake_slurm(tmp_path, monkeypatch, sinfo="gpu|gpu:4|64\n", sbatch=None):
     return bin_dir
 
 
-def test_slurm_is_detected_and_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatch, capsys):
-    fake_slurm(tmp_path, monkeypatch, sinfo="cpu*|(null)|64\ngpu|gpu:a100:4(S:0-1)|32\n")
+def test_engine_slurm_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatch, capsys):
+    fake_slurm(tmp_path, monkeypatch, sinfo="cpu*|(null)|64|256000\ngpu|gpu:a100:4(S:0-1)|32|128000\n")
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "cup-catch", "--methods", "drq", "--seeds", "1-2",
-                       "--partition", "gpu", "--account", "lab", "--time-limit", "600", "--threads", "2",
-                       "--slurm-array-parallelism", "3", "--frames", "40"]) == 0
+                       "--engine", "slurm", "--partition", "gpu", "--account", "lab", "--time-limit", "600",
+                       "--threads", "2", "--slurm-array-parallelism", "3", "--frames", "40"]) == 0
     script = (tmp_path / "submitted.sh").read_text()
     for line in ("--partition=gpu", "--account=lab", "--time=600", "--cpus-per-task=2", "--gpus-per-node=1",
                  "--array=0-3%3"):
@@ -321,30 +328,33 @@ def test_slurm_is_detected_and_gets_one_array_with_the_cluster_flags(tmp_path, m
 
 
 def test_a_partition_without_gpus_gets_no_gpu_request(tmp_path, monkeypatch, capsys):
-    fake_slurm(tmp_path, monkeypatch, sinfo="cpu*|(null)|64\ngpu|gpu:4|32\n")
+    fake_slurm(tmp_path, monkeypatch, sinfo="cpu*|(null)|64|256000\ngpu|gpu:4|32|128000\n")
     out = tmp_path / "sweeps"
-    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40"]) == 0
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40",
+                       "--engine", "slurm"]) == 0
     assert "(slurm, no GPU, as the default partition has none)" in capsys.readouterr().out
     script = (tmp_path / "submitted.sh").read_text()
     assert "--gpus" not in script and "--gres" not in script
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40",
-                       "--partition", "gpu", "--name", "g"]) == 0
+                       "--engine", "slurm", "--partition", "gpu", "--name", "g"]) == 0
     assert "#SBATCH --gpus-per-node=1\n" in (tmp_path / "submitted.sh").read_text()
 
 
 @pytest.mark.parametrize("argv, sinfo, message", [
-    (["--gpus-per-job", "1"], "cpu*|(null)|64\n",
+    (["--gpus-per-job", "1"], "cpu*|(null)|64|256000\n",
      "--gpus-per-job 1: the nodes of the default partition have no GPUs; --gpus-per-job 0 runs on their CPUs (sinfo)"),
-    (["--gpus-per-job", "8", "--partition", "gpu"], "cpu*|(null)|64\ngpu|gpu:v100:2,gpu:a100:2|32\n",
+    (["--gpus-per-job", "8", "--partition", "gpu"], "cpu*|(null)|64|256000\ngpu|gpu:v100:2,gpu:a100:2|32|128000\n",
      "--gpus-per-job 8: the nodes of partition gpu have at most 4 GPU(s) (sinfo)"),
-    (["--partition", "gpus"], "cpu*|(null)|64\ngpu|gpu:4|32\n", "SLURM has no partition 'gpus' (sinfo lists cpu, gpu)"),
-    (["--threads", "48", "--partition", "gpu"], "cpu*|(null)|64\ngpu|gpu:4|32\n",
+    (["--partition", "gpus"], "cpu*|(null)|64|256000\ngpu|gpu:4|32|128000\n",
+     "SLURM has no partition 'gpus' (sinfo lists cpu, gpu)"),
+    (["--threads", "48", "--partition", "gpu"], "cpu*|(null)|64|256000\ngpu|gpu:4|32|128000\n",
      "--threads 48: the nodes of partition gpu have at most 32 CPUs (sinfo), so the jobs would never start"),
 ])
 def test_what_slurm_cannot_give_fails_before_anything_is_created(tmp_path, monkeypatch, capsys, argv, sinfo, message):
     fake_slurm(tmp_path, monkeypatch, sinfo=sinfo)
     out = tmp_path / "sweeps"
-    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40", *argv]) == 2
+    assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40",
+                       "--engine", "slurm", *argv]) == 2
     assert capsys.readouterr().err == f"sweep.py: error: {message}\n"
     assert not out.exists() and not (tmp_path / "submitted.sh").exists()
 
@@ -356,16 +366,16 @@ def test_what_slurm_cannot_give_fails_before_anything_is_created(tmp_path, monke
     ('echo "sbatch: error: Memory specification can not be satisfied" >&2\n'
      'echo "sbatch: error: Batch job submission failed: Requested node configuration is not available" >&2; exit 1',
      "sbatch refused the 2 job(s): Memory specification can not be satisfied; Batch job submission failed: "
-     "Requested node configuration is not available (does a node have --mem-gb 32 GB?)"),
+     "Requested node configuration is not available (each job asks 3 GB: does a node have it? --mem-gb sets it)"),
     ('echo "sbatch: error: Batch job submission failed: Invalid account or account/partition combination" >&2; exit 1',
      "sbatch refused the 2 job(s): Batch job submission failed: Invalid account or account/partition combination"),
     ('echo "queued, no id"', 'sbatch refused the 2 job(s): Could not make sense of sbatch output "queued, no id"'),
 ])
 def test_a_refused_submission_is_one_line_with_sbatchs_reason(tmp_path, monkeypatch, capsys, sbatch, message):
-    fake_slurm(tmp_path, monkeypatch, sinfo="gpu*|gpu:1|8\n", sbatch=sbatch)
+    fake_slurm(tmp_path, monkeypatch, sinfo="gpu*|gpu:1|8|32000\n", sbatch=sbatch)
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2",
-                       "--frames", "40"]) == 2
+                       "--engine", "slurm", "--frames", "40"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"sweep.py: error: {message}") and err.count("\n") == 1, err
     assert sweep.main(["--out", str(out), "--status"]) == 0  # nothing was queued
@@ -377,10 +387,121 @@ def test_no_sbatch_is_one_line(tmp_path, monkeypatch, capsys):
     (bin_dir / "sbatch").unlink()
     monkeypatch.setenv("PATH", str(bin_dir))  # srun and sinfo, but no sbatch anywhere
     assert sweep.main(["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--methods", "drq",
-                       "--frames", "40"]) == 2
+                       "--engine", "slurm", "--frames", "40"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("sweep.py: error: sbatch refused the 1 job(s): [Errno 2] No such file or directory") \
         and err.count("\n") == 1, err
+
+
+def line(printed: str, start: str) -> str:
+    """The one printed line that starts with `start` (sear.py's recipe notes come first)."""
+    (found,) = [ln for ln in printed.splitlines() if ln.startswith(start)]
+    return found
+
+
+def test_srun_on_the_path_does_not_send_a_sweep_to_slurm(tmp_path, monkeypatch, capsys):
+    fake_slurm(tmp_path, monkeypatch, sinfo="debug*|(null)|8|32000\n")
+    out = tmp_path / "sweeps"
+    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--frames", "40"]
+    assert sweep.main([*argv, "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert line(printed, "engine: ") == ("engine: local (default; --engine slurm to submit to SLURM, whose srun is "
+                                         "on the PATH)")
+    assert "(local, " in line(printed, "sweep custom: ") and not (tmp_path / "submitted.sh").exists()
+    assert sweep.main([*argv, "--engine", "slurm", "--dry-run"]) == 0
+    assert line(capsys.readouterr().out, "engine: ") == "engine: slurm (--engine slurm)"
+
+
+def test_a_sweep_submitted_to_slurm_stays_on_slurm(tmp_path, monkeypatch, capsys):
+    bin_dir = fake_slurm(tmp_path, monkeypatch, sinfo="debug*|(null)|8|32000\n")
+    out = tmp_path / "sweeps"
+    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2", "--frames", "40"]
+    assert sweep.main([*argv, "--engine", "slurm"]) == 0
+    assert "submitted 2 jobs" in capsys.readouterr().out
+    assert json.loads((out / "custom" / "sweep.json").read_text())["engine"] == "slurm"
+    record = f"{out / 'custom' / 'sweep.json'} records it"
+    assert sweep.main([*argv, "--seeds", "1-3"]) == 0  # the same sweep, one more seed: SLURM again
+    printed = capsys.readouterr().out
+    assert line(printed, "engine: ") == f"engine: slurm ({record}; --engine local runs it here)"
+    assert "submitted 3 jobs" in printed  # queued jobs hold no lock yet: each takes it when it starts
+    assert sweep.main(["--out", str(out), "--status"]) == 0  # squeue: still pending
+    assert capsys.readouterr().out.splitlines()[-1] == "3 jobs: 3 queued"
+    # A folder from before the record named its engine: its jobs' status says SLURM.
+    record_path = out / "custom" / "sweep.json"
+    record_path.write_text(json.dumps({"sweeps": json.loads(record_path.read_text())["sweeps"]}))
+    assert sweep.main([*argv, "--dry-run"]) == 0
+    assert line(capsys.readouterr().out, "engine: ") == (f"engine: slurm (the jobs in {out / 'custom'} went to "
+                                                         f"SLURM; --engine local runs it here)")
+    (out / "new").mkdir()  # a folder told beforehand, as docs/sweeps.md says
+    (out / "new" / "sweep.json").write_text('{"engine": "slurm"}')
+    assert sweep.main([*argv, "--name", "new", "--dry-run"]) == 0
+    assert line(capsys.readouterr().out, "engine: ") == (f"engine: slurm ({out / 'new' / 'sweep.json'} records it; "
+                                                         f"--engine local runs it here)")
+    (bin_dir / "srun").unlink()  # the folder copied to a machine without SLURM
+    assert sweep.main([*argv, "--dry-run"]) == 2
+    assert capsys.readouterr().err == (f"sweep.py: error: engine slurm (the jobs in {out / 'custom'} went to SLURM; "
+                                       f"--engine local runs it here), but srun is not on this machine's PATH\n")
+
+
+def test_memory_per_job_comes_from_the_measured_peak_and_the_jobs_flags():
+    cfg = sweep.sear_config(["--env", "walker-walk", "--method", "sear"], "walker-walk sear")
+    peak, agent, held, how = sweep.run_memory(cfg)
+    assert (round(peak, 2), agent, held) == (8.2, 2.66, 250_000)  # EXPERIMENTS.md, "Memory": about 8.2 GB
+    assert how == ("sear: sear's measured peak at batch 256, 2.66 GB, + a replay of 250,000 transitions x 22 kB, "
+                   "5.54 GB, + 25%")
+    cfg = sweep.sear_config(["--env", "kitchen-kettle", "--method", "drq", "--batch-size", "512", "--frames",
+                             "100000", "--replay-size", "1000000"], "kitchen-kettle drq")
+    peak, agent, held, _ = sweep.run_memory(cfg)
+    assert held == 100_000 and round(agent, 2) == round(0.89 + 2 * (2.01 - 0.89), 2)  # a replay it never fills
+    import sear
+    worst = sear.ReplayBuffer(1, (3, 84, 84), 28, frame_stack=3, nstep=3, discount=0.99).bytes_per_transition
+    assert sweep.REPLAY_BYTES == worst  # Adroit's 28 actions: the most of any task
+
+
+def test_slurm_asks_the_estimated_memory_and_refuses_what_no_node_holds(tmp_path, monkeypatch, capsys):
+    fake_slurm(tmp_path, monkeypatch, sinfo="debug*|(null)|8|64000\n")
+    out = tmp_path / "sweeps"
+    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "sear", "drq", "--engine", "slurm"]
+    assert sweep.main(argv) == 0
+    assert line(capsys.readouterr().out, "memory: ") == (
+        "memory: 11 GB per job (sear: sear's measured peak at batch 256, 2.66 GB, + a replay of 250,000 transitions "
+        "x 22 kB, 5.54 GB, + 25%; --mem-gb sets it); a node of the default partition has at most 62.5 GB (sinfo)")
+    assert "#SBATCH --mem=11GB\n" in (tmp_path / "submitted.sh").read_text()
+    assert sweep.main([*argv, "--name", "small", "--mem-gb", "2"]) == 0  # --mem-gb wins
+    assert line(capsys.readouterr().out, "memory: ").startswith("memory: 2 GB per job (--mem-gb; the estimate is "
+                                                               "11 GB)")
+    assert "#SBATCH --mem=2GB\n" in (tmp_path / "submitted.sh").read_text()
+
+    (tmp_path / "x").mkdir()
+    fake_slurm(tmp_path / "x", monkeypatch, sinfo="debug*|(null)|8|8000\n")  # a node of 7.8 GB
+    for extra, message in (
+            ([], "a job needs 11 GB (sear: sear's measured peak at batch 256, 2.66 GB, + a replay of 250,000 "
+                 "transitions x 22 kB, 5.54 GB, + 25%), but a node of the default partition has at most 7.8 GB "
+                 "(sinfo); --replay-size 132000 fits"),
+            (["--mem-gb", "8"], "--mem-gb 8: a node of the default partition has at most 7.8 GB (sinfo)")):
+        assert sweep.main([*argv, "--name", "refused", *extra]) == 2
+        assert capsys.readouterr().err == f"sweep.py: error: {message}\n"
+        assert not (out / "refused").exists()
+
+
+def test_local_memory_bounds_the_jobs_at_a_time_and_refuses_a_job_too_big(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(sweep, "cpu_count", lambda: 8)
+    monkeypatch.setattr(sweep, "local_memory_gb", lambda: 24.0)
+    argv = ["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--methods", "sear", "--seeds", "1-4",
+            "--dry-run"]
+    assert sweep.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert line(printed, "memory: ").endswith("; this machine has 24.0 GB, room for 2 at a time")
+    assert "(local, 2 at a time, 1 thread(s) each" in line(printed, "sweep custom: ")
+    assert sweep.main([*argv, "--jobs", "4"]) == 0
+    assert line(capsys.readouterr().out, "memory: ").endswith("; --jobs 4 x 11 GB is more than that")
+    assert sweep.main([*argv, "--", "--frames", "2000", "--batch-size", "32"]) == 0  # small: cores bound it
+    assert "(local, 8 at a time" in capsys.readouterr().out
+    monkeypatch.setattr(sweep, "local_memory_gb", lambda: 6.0)
+    assert sweep.main(argv) == 2
+    assert capsys.readouterr().err.endswith("but this machine has 6.0 GB; --replay-size 96000 fits\n")
+    assert sweep.main([*argv, "--", "--replay-size", "96000"]) == 0  # the hint fits
+    assert line(capsys.readouterr().out, "memory: ").startswith("memory: 6 GB per job")
 
 
 def test_a_job_requeued_at_its_time_limit_takes_its_own_lock_over_and_resumes(tmp_path, monkeypatch):
@@ -438,6 +559,8 @@ def test_real_slurm_sweep_cancelled_midway_resumes_and_then_submits_nothing(tmp_
             "--", *TINY, "--frames", "300", "--eval-every", "100"]
     assert sweep.main(argv) == 0
     printed = capsys.readouterr().out
+    assert "engine: slurm (--engine slurm)\n" in printed  # never picked just because srun is on the PATH
+    assert line(printed, "memory: ").startswith("memory: 1 GB per job (--mem-gb; the estimate is ")
     assert ("2 jobs (1 envs x 1 methods x 2 seeds): 0 done, 0 running elsewhere, 2 to run "
             "(slurm, no GPU, as the default partition has none)") in printed
     assert "submitted 2 jobs" in printed
@@ -672,6 +795,24 @@ def test_status_and_report_find_a_sweeps_runs_without_its_flags(finished_sweep, 
     (out / "custom" / "report.md").unlink()
     assert sweep.main([*args, "--report"]) == 0
     assert "8 of 8 jobs finished" in capsys.readouterr().out and (out / "custom" / "report.md").exists()
+
+
+def test_status_and_report_work_inside_the_sweeps_folder(finished_sweep, monkeypatch, capsys):
+    out, args, flags = finished_sweep
+    monkeypatch.chdir(out / "custom")
+    for argv in (["--status"], ["--methods", "sear", "--status"], ["--status", "--", *flags]):
+        assert sweep.main(argv) == 0, argv
+        assert capsys.readouterr().out.splitlines()[-1] == f"{8 if argv[0] != '--methods' else 4} jobs: " \
+               f"{8 if argv[0] != '--methods' else 4} done", argv
+    (out / "custom" / "report.md").unlink()
+    assert sweep.main(["--report"]) == 0 and (out / "custom" / "report.md").exists()
+    capsys.readouterr()
+    (out / "custom" / "sweep.json").unlink()  # a folder from before the record: its jobs
+    assert sweep.main(["--status"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "8 jobs: 8 done"
+    monkeypatch.chdir(out.parent)  # and from elsewhere, with --out and --name
+    assert sweep.main(["--out", str(out), "--name", "custom", "--status"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "8 jobs: 8 done"
 
 
 def test_flags_that_disagree_with_the_record_are_one_line_naming_the_sweep(finished_sweep, capsys):
