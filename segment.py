@@ -54,9 +54,10 @@ VERSION = 1
 
 # The held-out IoU below which `train` writes no model (unless --force) and sear.py refuses one.
 # The paper's ablations show SEAR still learning on the authors' approximate masks, whose IoU with
-# the clean mask is as low as 0.53 (walker-walk, docs/masks.md); below 0.5 a mask misses more of
-# the robot than it covers, where no experiment says SEAR still works. A working model is far above
-# it (0.97 with 100 labels, EXPERIMENTS.md rung LM); a broken one (too few steps) is near 0.
+# the clean mask is as low as 0.53 (walker-walk, docs/masks.md); below 0.5 a mask has more pixels
+# wrong (robot missed, or background called robot) than robot pixels right, where no experiment
+# says SEAR still works. A working model is far above it (0.97 with 100 labels, EXPERIMENTS.md
+# rung LM); a broken one (too few steps) is near 0.
 IOU_FLOOR = 0.5
 
 
@@ -361,12 +362,14 @@ class LearnedMaskIoU(gym.Wrapper):
     """An env whose obs["mask"] comes from a mask model, with the simulator's mask in
     info["true_mask"] (envs.make_env(mask_model=, render_mask=True)): scores the newest mask of every
     observation against it. ``pop()`` gives the mean IoU over the frames seen since the last pop
-    (frames where both masks are empty left out) and starts again. It only reads info["true_mask"]:
-    nothing downstream (agent, replay) ever sees it."""
+    (frames where both masks are empty left out) and starts again; ``low_iou``, the run's IoUWatch on
+    those means (one eval env per run). It only reads info["true_mask"]: nothing downstream (agent,
+    replay) ever sees it."""
 
     def __init__(self, env):
         super().__init__(env)
         self.scores: list[float] = []
+        self.low_iou = IoUWatch()
 
     def see(self, obs, info):
         self.scores.append(iou(obs["mask"][-1:].astype(bool), info["true_mask"][None]))
@@ -525,8 +528,8 @@ def recorded_iou(meta: dict) -> tuple[str, str]:
     if meta.get("forced_below_floor"):
         shown = ", ".join(f"{k} {v:.3f}" for k, v in scores.items())
         return "warn", (f"the mask model was written below the IoU floor {IOU_FLOOR} with segment.py train --force "
-                        f"(IoU: {shown}): SEAR will train on masks that miss much of the robot "
-                        f"(eval.csv learned_mask_iou shows how much)")
+                        f"(IoU: {shown}): SEAR will train on masks with more pixels wrong than robot pixels "
+                        f"right (eval.csv learned_mask_iou shows how far off)")
     if not isinstance(held, (int, float)) or np.isnan(held):
         return "ok", (f"mask model: held-out IoU not recorded (an older model file, or no held-out pairs); "
                       f"not checked against the floor {IOU_FLOOR}")
@@ -560,9 +563,9 @@ class IoUWatch:
         self.warned = True
         where = ", ".join(f"{v:.3f}" + (f" at frame {f}" if f is not None else "") for v, f in self.low)
         return (f"learned_mask_iou has stayed below {IOU_FLOOR} for {len(self.low)} evaluations ({where}): the "
-                f"mask model misses most of the robot in this run's frames, so SEAR's mask decoder and the "
-                f"latent's robot half learn from wrong masks; label frames like these and train a new model "
-                f"(python segment.py train)")
+                f"learned masks have more pixels wrong than robot pixels right in this run's frames, so SEAR's "
+                f"mask decoder and the latent's robot half learn from wrong masks; label frames like these "
+                f"and train a new model (python segment.py train)")
 
 
 def run_export(args) -> None:

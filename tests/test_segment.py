@@ -304,10 +304,14 @@ def test_iou_watch_warns_once_when_two_evaluations_in_a_row_are_below_the_floor(
     assert [watch.see(v, f) for v, f in ((0.1, 0), (0.9, 1000), (0.2, 2000), (float("nan"), 3000))] == [None] * 4
     message = watch.see(0.3, 4000)
     assert message.startswith("learned_mask_iou has stayed below 0.5 for 2 evaluations (0.200 at frame 2000, "
-                              "0.300 at frame 4000): the mask model misses"), message
+                              "0.300 at frame 4000): the learned masks have more pixels wrong"), message
     assert watch.see(0.0, 5000) is None and watch.see(0.0, 6000) is None   # once
     watch = segment.IoUWatch()
     assert watch.see(0.5) is None and watch.see(0.5) is None   # the floor itself passes
+    # The run's watch lives on its eval env, the one LearnedMaskIoU of the run.
+    env = envs.make_env("walker-walk", seed=0, render_quality="fast")
+    assert isinstance(segment.LearnedMaskIoU(env).low_iou, segment.IoUWatch)
+    env.close()
 
 
 def test_mask_source_flag_is_checked(tmp_path, capsys):
