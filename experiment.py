@@ -67,7 +67,9 @@ class EnvConfig:
 
 def load_mask_model(cfg):
     """The learned mask source of --mask-source learned:PATH (None for sim); a missing or damaged
-    file is a ConfigError, raised before any run directory exists."""
+    file, or one whose recorded held-out IoU is below segment.IOU_FLOOR, is a ConfigError, raised
+    before any run directory exists. One written below the floor with segment.py's --force is the
+    user's choice: a warning. The held-out IoU is printed (or that the file has none)."""
     if cfg.mask_source == "sim":
         return None
     import segment  # the learned mask source (gymnasium, PIL): only when a run uses it
@@ -75,6 +77,13 @@ def load_mask_model(cfg):
         model = segment.load_model(cfg.mask_source[len("learned:"):])
     except segment.SegmentError as e:
         raise cli.ConfigError(f"--mask-source: {e}") from None
+    verdict, message = segment.recorded_iou(model.meta)
+    if verdict == "refuse":
+        raise cli.ConfigError(f"--mask-source: {message}")
+    if verdict == "warn":
+        cli.warn(f"--mask-source: {message}")
+    else:
+        print(message)
     message = other_robot_warning(cfg, model.meta)
     if message:
         cli.warn(message)

@@ -17,7 +17,9 @@ shift augmentation of DrQ-v2 (the same shift for image and mask). IoU is reporte
 frames of the training episodes, on frames of other episodes and, for Distracting Control, on
 frames with unseen backgrounds (the envs' "eval" split). The model file (.pt) holds the weights,
 the sizes needed to rebuild the network, and how it was trained: from a suite, its env and robot
-(sear.py warns when the model is used on another robot).
+(sear.py warns when the model is used on another robot), and its IoUs. ``train`` writes no model
+whose held-out IoU is below IOU_FLOOR unless --force, and sear.py refuses one (IoUWatch: the same
+floor on a run's learned_mask_iou).
 
     python segment.py train --env walker-walk-distracting --labels 100 --out masks/walker.pt
     python segment.py train --folder my_labels/ --out my.pt
@@ -49,6 +51,14 @@ import cli  # storage errors as one line (cli imports nothing of the project)
 
 FORMAT = "sear-mask-model"
 VERSION = 1
+
+# The held-out IoU below which `train` writes no model (unless --force) and sear.py refuses one.
+# The paper's ablations show SEAR still learning on the authors' approximate masks, whose IoU with
+# the clean mask is as low as 0.53 (walker-walk, docs/masks.md); below 0.5 a mask has more pixels
+# wrong (robot missed, or background called robot) than robot pixels right, where no experiment
+# says SEAR still works. A working model is far above it (0.97 with 100 labels, EXPERIMENTS.md
+# rung LM); a broken one (too few steps) is near 0.
+IOU_FLOOR = 0.5
 
 
 class SegmentError(ValueError):
@@ -352,12 +362,14 @@ class LearnedMaskIoU(gym.Wrapper):
     """An env whose obs["mask"] comes from a mask model, with the simulator's mask in
     info["true_mask"] (envs.make_env(mask_model=, render_mask=True)): scores the newest mask of every
     observation against it. ``pop()`` gives the mean IoU over the frames seen since the last pop
-    (frames where both masks are empty left out) and starts again. It only reads info["true_mask"]:
-    nothing downstream (agent, replay) ever sees it."""
+    (frames where both masks are empty left out) and starts again; ``low_iou``, the run's IoUWatch on
+    those means (one eval env per run). It only reads info["true_mask"]: nothing downstream (agent,
+    replay) ever sees it."""
 
     def __init__(self, env):
         super().__init__(env)
         self.scores: list[float] = []
+        self.low_iou = IoUWatch()
 
     def see(self, obs, info):
         self.scores.append(iou(obs["mask"][-1:].astype(bool), info["true_mask"][None]))
@@ -414,7 +426,9 @@ def build_parser() -> OneLineParser:
                        help="U-Net widths per level (default 8,16,32)")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--threads", type=int, default=0, help="torch threads (0 = $OMP_NUM_THREADS or all cores)")
-    train.add_argument("--force", action="store_true", help="overwrite an existing --out")
+    train.add_argument("--force", action="store_true",
+                       help=f"overwrite an existing --out, and write the model even if its held-out IoU is below "
+                            f"{IOU_FLOOR} (the file records it; sear.py then warns instead of refusing it)")
     export = sub.add_parser("export", help="write a suite's frames and simulator masks as a labels folder")
     export.add_argument("--env", required=True)
     export.add_argument("--labels", type=int, default=100)
@@ -476,10 +490,82 @@ def run_train(args) -> None:
     scores = {"train": iou(predict(model, images), masks)}
     scores.update({name: iou(predict(model, x), y) for name, (x, y) in tests.items()})
     model.meta["iou"] = {k: round(v, 4) for k, v in scores.items()}
-    model.save(args.out)
     print("IoU: " + ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
+    below = below_floor(scores)
+    model.meta["iou_floor"] = IOU_FLOOR
+    if below and not args.force:
+        raise SegmentError(f"{below}; no model written (more labels or --steps, or --force to write it anyway)")
+    if below:  # the file says so, and sear.py warns at every start instead of refusing it
+        model.meta["forced_below_floor"] = True
+    elif "held-out" not in tests:
+        print(f"held-out IoU not measured (no held-out pairs: --holdout 0, or fewer than 5 pairs); "
+              f"sear.py cannot check this model against the floor {IOU_FLOOR}")
+    model.save(args.out)
+    if below:  # after the save: a storage error stays the one line on stderr
+        print(f"segment.py: warning: {below}; written because of --force", file=sys.stderr)
     print(f"wrote {args.out} (trained in {model.meta['train_seconds']} s)")
     print(json.dumps({"labels": len(images), "train_seconds": model.meta["train_seconds"], "iou": model.meta["iou"]}))
+
+
+def below_floor(scores: dict) -> str | None:
+    """Why a freshly trained model fails IOU_FLOOR, or None. The held-out IoU decides; without
+    held-out pairs the training frames' IoU does: a model below the floor on the very frames it
+    learned from is no better on others."""
+    name = "held-out" if "held-out" in scores else "train"
+    value = scores[name]
+    if np.isnan(value) or value >= IOU_FLOOR:   # NaN: no frame with any robot in it to score
+        return None
+    return f"the model's {name} IoU is {value:.3f}, below the floor {IOU_FLOOR}"
+
+
+def recorded_iou(meta: dict) -> tuple[str, str]:
+    """sear.py's verdict on a model file: (what, message) with what "ok" (print the message),
+    "warn" (a model written below the floor with --force: the user's choice, said loudly) or
+    "refuse" (below the floor without that record: only an older segment.py wrote such files).
+    A file without a held-out IoU (older files, a labels folder without held-out pairs) is "ok"."""
+    scores = meta.get("iou") if isinstance(meta.get("iou"), dict) else {}
+    held = scores.get("held-out")
+    if meta.get("forced_below_floor"):
+        shown = ", ".join(f"{k} {v:.3f}" for k, v in scores.items())
+        return "warn", (f"the mask model was written below the IoU floor {IOU_FLOOR} with segment.py train --force "
+                        f"(IoU: {shown}): SEAR will train on masks with more pixels wrong than robot pixels "
+                        f"right (eval.csv learned_mask_iou shows how far off)")
+    if not isinstance(held, (int, float)) or np.isnan(held):
+        return "ok", (f"mask model: held-out IoU not recorded (an older model file, or no held-out pairs); "
+                      f"not checked against the floor {IOU_FLOOR}")
+    if held < IOU_FLOOR:
+        return "refuse", (f"the mask model's held-out IoU is {held:.3f}, below the floor {IOU_FLOOR}; train a "
+                          f"better one with python segment.py train (more labels or --steps)")
+    return "ok", f"mask model: held-out IoU {held:.3f} (floor {IOU_FLOOR})"
+
+
+class IoUWatch:
+    """A run's learned_mask_iou, evaluation after evaluation: ``see(iou, frame)`` returns a warning,
+    once, when the last PATIENCE evaluations were all below IOU_FLOOR, else None. The model is fixed
+    but the frames are not: a model that scored well on its labels can miss the robot in the poses a
+    learning policy reaches. One evaluation can be a narrow set of frames (the untrained policy's at
+    frame 0, a single episode); two in a row, at different stages of the policy, say the model misses
+    the robot in this run. Evaluations without a score (NaN: the robot never in view) neither count
+    nor break the run of low ones."""
+
+    PATIENCE = 2
+
+    def __init__(self):
+        self.low: list[tuple[float, int | None]] = []
+        self.warned = False
+
+    def see(self, value: float, frame: int | None = None) -> str | None:
+        if self.warned or value is None or np.isnan(value):
+            return None
+        self.low = self.low + [(value, frame)] if value < IOU_FLOOR else []
+        if len(self.low) < self.PATIENCE:
+            return None
+        self.warned = True
+        where = ", ".join(f"{v:.3f}" + (f" at frame {f}" if f is not None else "") for v, f in self.low)
+        return (f"learned_mask_iou has stayed below {IOU_FLOOR} for {len(self.low)} evaluations ({where}): the "
+                f"learned masks have more pixels wrong than robot pixels right in this run's frames, so SEAR's "
+                f"mask decoder and the latent's robot half learn from wrong masks; label frames like these "
+                f"and train a new model (python segment.py train)")
 
 
 def run_export(args) -> None:

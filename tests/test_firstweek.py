@@ -392,7 +392,7 @@ def test_a_file_that_is_not_a_mask_model_says_so(a_run, tmp_path):
 def test_a_mask_model_knows_its_robot_and_warns_on_another(tmp_path):
     model = tmp_path / "cup.pt"
     r = subprocess.run([sys.executable, str(ROOT / "segment.py"), "train", "--env", "cup-catch", "--labels", "4",
-                        "--steps", "2", "--channels", "4,8,16", "--threads", "1", "--out", str(model)],
+                        "--steps", "2", "--channels", "4,8,16", "--threads", "1", "--out", str(model), "--force"],
                        capture_output=True, text=True, timeout=600, cwd=tmp_path, env=ENV)
     assert r.returncode == 0, r.stderr[-3000:]
     sys.path.insert(0, str(ROOT))
@@ -407,7 +407,8 @@ def test_a_mask_model_knows_its_robot_and_warns_on_another(tmp_path):
         r = run(["--run-root", tmp_path / "runs", "--env", "walker-walk", *TINY, "--frames", "16",
                  "--mask-source", f"learned:{path}"], tmp_path)
         assert r.returncode == 0, r.stderr[-3000:]
-        warnings = [line for line in r.stderr.splitlines() if "warning" in line]
+        # (--force wrote it below the IoU floor: that warning is test_segment.py's subject)
+        warnings = [line for line in r.stderr.splitlines() if "warning" in line and "IoU floor" not in line]
         if warned:
             assert len(warnings) == 1 and "trained on cup-catch (robot: ball_in_cup)" in warnings[0] \
                 and "walker-walk's robot is walker" in warnings[0], r.stderr

@@ -81,11 +81,44 @@ def test_folder_round_trip_and_train_cli(tmp_path, capsys):
     assert segment.read_folder(str(tmp_path / "labels"))[0].shape == (6, 3, 84, 84)
     out = tmp_path / "m.pt"
     assert segment.main(["train", "--folder", str(tmp_path / "labels"), "--out", str(out), "--steps", "2",
-                         "--channels", "4,8"]) == 0
+                         "--channels", "4,8", "--force"]) == 0   # 2 steps: below the IoU floor, forced
     meta = segment.load_model(str(out)).meta
     assert meta["labels"] == 5 and set(meta["iou"]) == {"train", "held-out"}   # 1 of 6 held out
     assert segment.main(["train", "--folder", str(tmp_path / "labels"), "--out", str(out)]) == 2
     assert "refusing to overwrite" in capsys.readouterr().err
+
+
+def test_train_refuses_a_model_below_the_iou_floor_unless_forced(tmp_path, capsys):
+    """The issue's case: a model that finds no robot (IoU ~0 after 1 step) is one line, exit 2, no file;
+    --force writes it and the file records that it was forced below the floor."""
+    images, masks = shapes(10)
+    segment.write_folder(str(tmp_path / "labels"), images, masks)
+    out = tmp_path / "m.pt"
+    train = ["train", "--folder", str(tmp_path / "labels"), "--out", str(out), "--steps", "1", "--channels", "4,8"]
+    assert segment.main(train) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("segment.py: error: the model's held-out IoU is 0.") \
+        and f"below the floor {segment.IOU_FLOOR}" in err and "--force" in err, err
+    assert not out.exists() and not list(tmp_path.glob("*.tmp"))
+    assert segment.main([*train, "--force"]) == 0
+    meta = segment.load_model(str(out)).meta
+    assert meta["forced_below_floor"] is True and meta["iou_floor"] == segment.IOU_FLOOR
+    assert meta["iou"]["held-out"] < segment.IOU_FLOOR
+    assert "written because of --force" in capsys.readouterr().err
+    # No held-out pairs (--holdout 0): the training frames' IoU is held to the floor instead.
+    assert segment.main([*train, "--holdout", "0", "--out", str(tmp_path / "n.pt")]) == 2
+    assert "the model's train IoU is 0." in capsys.readouterr().err and not (tmp_path / "n.pt").exists()
+
+
+def test_a_model_above_the_floor_is_written_and_says_so(tmp_path, capsys):
+    images, masks = shapes(10)
+    segment.write_folder(str(tmp_path / "labels"), images, masks)
+    out = tmp_path / "m.pt"
+    assert segment.main(["train", "--folder", str(tmp_path / "labels"), "--out", str(out), "--steps", "60",
+                         "--batch-size", "8", "--lr", "3e-3", "--channels", "8,16", "--holdout", "0"]) == 0
+    assert "held-out IoU not measured" in capsys.readouterr().out
+    meta = segment.load_model(str(out)).meta
+    assert meta["iou"]["train"] >= segment.IOU_FLOOR and "forced_below_floor" not in meta
 
 
 def bad_folder(tmp_path, case):
@@ -136,7 +169,7 @@ def test_a_storage_error_writing_the_model_is_one_line_and_leaves_nothing(tmp_pa
     out = tmp_path / "afile" / "m.pt" if where == "a file in the way" else tmp_path / "models" / "m.pt"
     limit = 4096
     p = subprocess.run([sys.executable, str(ROOT / "segment.py"), "train", "--folder", str(tmp_path / "labels"),
-                        "--out", str(out), "--steps", "1", "--channels", "4,8"], capture_output=True, text=True,
+                        "--out", str(out), "--steps", "1", "--channels", "4,8", "--force"], capture_output=True, text=True,
                        timeout=300, preexec_fn=None if where == "a file in the way" else
                        lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr, p.stderr[-2000:]
@@ -226,6 +259,60 @@ def test_missing_or_corrupt_model_is_one_line_before_any_run_dir(tmp_path, capsy
     code, out = run_sear(tmp_path, capsys, "--mask-source", f"learned:{path}")
     assert code == 2 and out.err.count("\n") == 1 and message in out.err, out.err
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
+
+
+def model_with(path, **meta):
+    segment.MaskModel(segment.UNet((4, 8)), meta).save(str(path))
+    return path
+
+
+@pytest.mark.parametrize("meta, said", [
+    ({"iou": {"train": 0.95, "held-out": 0.912}, "iou_floor": 0.5}, "mask model: held-out IoU 0.912 (floor 0.5)"),
+    ({"labels": 3}, "mask model: held-out IoU not recorded"),   # an older file, or no held-out pairs
+    ({"iou": {"train": 0.2, "held-out": float("nan")}}, "mask model: held-out IoU not recorded")])
+def test_sear_prints_the_models_recorded_held_out_iou(tmp_path, capsys, meta, said):
+    import experiment
+    cfg = sear.Config(env="walker-walk", mask_source=f"learned:{model_with(tmp_path / 'm.pt', **meta)}")
+    assert experiment.load_mask_model(cfg) is not None
+    out = capsys.readouterr()
+    assert out.out.startswith(said) and out.out.count("\n") == 1 and out.err == "", out
+
+
+def test_sear_warns_on_a_model_forced_below_the_floor(tmp_path, capsys):
+    import experiment
+    path = model_with(tmp_path / "m.pt", iou={"train": 0.01, "held-out": 0.0}, iou_floor=0.5, forced_below_floor=True)
+    assert experiment.load_mask_model(sear.Config(env="walker-walk", mask_source=f"learned:{path}")) is not None
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("sear.py: warning: --mask-source: the mask model was written "
+                                                    "below the IoU floor 0.5 with segment.py train --force"), err
+    assert "held-out 0.000" in err
+
+
+def test_sear_refuses_a_recorded_held_out_iou_below_the_floor(tmp_path, capsys):
+    """Only an older segment.py wrote such a file unforced: one line, exit 2, before any run dir."""
+    path = model_with(tmp_path / "m.pt", iou={"train": 0.0, "held-out": 0.0})
+    code, out = run_sear(tmp_path, capsys, "--mask-source", f"learned:{path}")
+    assert code == 2 and out.err == ("sear.py: error: --mask-source: the mask model's held-out IoU is 0.000, below the "
+                                     "floor 0.5; train a better one with python segment.py train (more labels or "
+                                     "--steps)\n"), out.err
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
+
+
+def test_iou_watch_warns_once_when_two_evaluations_in_a_row_are_below_the_floor():
+    watch = segment.IoUWatch()
+    # One low evaluation (the untrained policy's frames, say) is not enough; a good one resets the count;
+    # an evaluation without a score (NaN) neither counts nor resets.
+    assert [watch.see(v, f) for v, f in ((0.1, 0), (0.9, 1000), (0.2, 2000), (float("nan"), 3000))] == [None] * 4
+    message = watch.see(0.3, 4000)
+    assert message.startswith("learned_mask_iou has stayed below 0.5 for 2 evaluations (0.200 at frame 2000, "
+                              "0.300 at frame 4000): the learned masks have more pixels wrong"), message
+    assert watch.see(0.0, 5000) is None and watch.see(0.0, 6000) is None   # once
+    watch = segment.IoUWatch()
+    assert watch.see(0.5) is None and watch.see(0.5) is None   # the floor itself passes
+    # The run's watch lives on its eval env, the one LearnedMaskIoU of the run.
+    env = envs.make_env("walker-walk", seed=0, render_quality="fast")
+    assert isinstance(segment.LearnedMaskIoU(env).low_iou, segment.IoUWatch)
+    env.close()
 
 
 def test_mask_source_flag_is_checked(tmp_path, capsys):
