@@ -1356,6 +1356,8 @@ class RunDir:
                "wall_time": round(time.time() - self.start_time, 2), **eval_columns(episodes), **scores}
         if measures_learned_iou(self.cfg):  # the mask model's IoU on these episodes' frames
             row["learned_mask_iou"] = scores["learned_mask_iou"] = self.watch.env.pop()
+            if warning := self.watch.env.low_iou.see(row["learned_mask_iou"], frame):
+                cli.warn(warning)
         self.eval_log.write(row)
         if self.writer:
             self.writer.add_scalar("eval/return", row["return"], frame)
