@@ -80,15 +80,23 @@ def cpu_flags() -> set:
     return set()
 
 
+# oneDNN's ISA names (ONEDNN_MAX_CPU_ISA) from which on it has bf16 instructions.
+ONEDNN_BF16_ISAS = ("AVX512_CORE_BF16", "AVX512_CORE_AMX", "AVX10", "ALL")
+
+
 def native_bf16() -> tuple[bool, str]:
     """(whether this CPU computes bf16 natively, why): x86 with AVX-512's bf16 extension or AMX, Arm with
-    its bf16 instructions. torch's CPU capability ('AVX512', 'AVX2', 'DEFAULT') does not say it: an
-    AVX-512 CPU without avx512_bf16 converts too. Without native bf16, oneDNN emulates it: a bf16 2048^3
-    matmul ran at ~1 GFLOP/s against 55-130 fp32 on a 2-core AVX2 EPYC, and bf16 updates slow down alike.
-    SEAR_ASSUME_NO_BF16=1 answers no, to try that path on a machine that has bf16."""
+    its bf16 instructions, unless ONEDNN_MAX_CPU_ISA keeps oneDNN below them. torch's CPU capability
+    ('AVX512', 'AVX2', 'DEFAULT') does not say it: an AVX-512 CPU without avx512_bf16 converts too.
+    Without native bf16, oneDNN emulates it: a bf16 2048^3 matmul ran at ~1 GFLOP/s against 55-130
+    fp32 on a 2-core AVX2 EPYC, and bf16 updates slow down alike. SEAR_ASSUME_NO_BF16=1 answers no, to
+    try that path on a machine that has bf16."""
     capability = torch.backends.cpu.get_cpu_capability()
     if os.environ.get("SEAR_ASSUME_NO_BF16") == "1":
         return False, f"SEAR_ASSUME_NO_BF16=1 (CPU capability {capability})"
+    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").upper()
+    if isa and not isa.startswith(ONEDNN_BF16_ISAS):
+        return False, f"ONEDNN_MAX_CPU_ISA={isa} (CPU capability {capability})"
     native = sorted(cpu_flags() & {"avx512_bf16", "amx_bf16", "bf16"})
     if native:
         return True, f"CPU capability {capability}, {' '.join(native)}"

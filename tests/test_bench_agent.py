@@ -97,15 +97,21 @@ def test_native_bf16_can_be_denied(monkeypatch):
     assert not native and "SEAR_ASSUME_NO_BF16" in why
 
 
-def test_native_bf16_reads_the_cpu_flags(monkeypatch):
+def test_native_bf16_reads_the_cpu_flags_and_onednns_isa(monkeypatch):
     monkeypatch.delenv("SEAR_ASSUME_NO_BF16", raising=False)
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     monkeypatch.setattr(bench_agent, "cpu_flags", lambda: {"avx2", "avx512f"})
     assert not bench_agent.native_bf16()[0]
     monkeypatch.setattr(bench_agent, "cpu_flags", lambda: {"avx512f", "avx512_bf16"})
     assert bench_agent.native_bf16()[0]
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx512_core_amx")
+    assert bench_agent.native_bf16()[0]
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")  # oneDNN kept to AVX2: it emulates bf16
+    assert not bench_agent.native_bf16()[0]
 
 
 def test_emulated_bf16_is_left_out_unless_asked(monkeypatch, capsys):
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     monkeypatch.setenv("SEAR_ASSUME_NO_BF16", "1")
     args = argparse.Namespace(device="cpu", precisions=None)
     bench_agent.choose_precisions(args)
