@@ -1,6 +1,7 @@
 """What one agent update dispatches: aten ops, host syncs, bytes copied host->device; counted on the CPU
-(or on the agents' device, --device). These counts are what a GPU's update time is made of when its kernels are small (a launch and a few us
-of host work per op, a stall per sync, a copy per batch), and they are the same on any machine.
+(or on the agents' device, --device). These counts are what a GPU's update time is made of when its
+kernels are small (a launch and a few us of host work per op, a stall per sync, a copy per batch), and
+no machine changes them but through the optimiser's path (below).
 
     python benchmarks/update_counts.py                        # every method, the paper's sizes, batch 8
     python benchmarks/update_counts.py --methods drq sear --top 25
@@ -307,8 +308,9 @@ def main(argv=None) -> int:
     failed = []
     for label, c in counts.items():
         syncs = ", ".join(f"{k} x{n}" for k, n in c.sync_names.most_common())
-        print(f"| {label} | {c.ops} | {c.syncs} | {c.h2d_bytes:,} | {c.h2d_bytes * 256 / args.batch_size / 1e6:.1f} MB | "
-              f"{c.names['lerp_']} | {c.host_reads} | {syncs} |")
+        at_256 = c.h2d_bytes * 256 / args.batch_size  # the batch's arrays: bytes in proportion to its size
+        print(f"| {label} | {c.ops} | {c.syncs} | {c.h2d_bytes:,} | {at_256 / 1e6:.1f} MB | {c.names['lerp_']} | "
+              f"{c.host_reads} | {syncs} |")
         failed += misses(label, c)
     print(f"\ntargets: ops per update {OPS_TARGET}, host syncs {SYNCS_TARGET}: "
           + ("all met" if not failed else f"{len(failed)} missed" + ("" if args.check else " (--check lists them)")))
