@@ -289,7 +289,9 @@ def main(argv=None) -> int:
     p.add_argument("--hidden-dim", type=int)
     p.add_argument("--feature-dim", type=int)
     args = p.parse_args(argv)
-    torch.set_num_threads(cli.default_threads())
+    # One thread: the counts do not depend on it, and on cores that other processes share, a second
+    # thread waits for the first at every op (tiny networks then took 10x as long).
+    torch.set_num_threads(1)
     overrides = {"batch_size": args.batch_size, "action_repeat": 2,
                  **{k: getattr(args, k) for k in ("latent_dim", "hidden_dim", "feature_dim") if getattr(args, k)}}
     sizes = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in overrides.items() if k != "action_repeat")

@@ -15,6 +15,15 @@ import update_counts  # noqa: E402
 SMALL = {"latent_dim": 64, "hidden_dim": 32, "feature_dim": 16, "batch_size": 4, "action_repeat": 2}
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """As update_counts.py runs: on shared cores a second torch thread waits for the first at every op."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 class Calls:
     """What count_update needs of an agent: `device`, and `update(batch, step)`, here fn(batch)."""
 
