@@ -12,6 +12,7 @@ DrQ-v2 update timed against this project's drq update in the same process.
     python benchmarks/bench_agent.py --compare-layouts --rounds 3 --updates 2   # channels_last vs NCHW
     python benchmarks/bench_agent.py --compare-compile --official DIR --precisions fp32   # eager vs --compile
     python benchmarks/bench_agent.py --snapshot runs/<run dir> --profile --subnormals     # trained vs fresh
+    python benchmarks/bench_agent.py --device cuda --profile --precisions fp32 --split-steps 0   # kernels, syncs, H2D
     python benchmarks/bench_agent.py --snapshot runs/<run dir> --threads 1 --flush-denormal   # + subnormals flushed
 
 Synthetic batches (no rendering) for the update table, so those are the learner's cost alone. Times
@@ -38,6 +39,11 @@ import experiment  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 
+try:
+    import baselines  # noqa: E402, F401  # registers the baseline methods into sear.METHODS
+except ImportError:
+    pass
+
 
 def gemm_size(device):
     """(n, reps) of the peak's square matmul: a GPU needs far larger products than 2048^3 to reach it."""
@@ -60,6 +66,54 @@ def gemm_gflops(dtype, device="cpu"):
 def sync(device):
     if torch.device(device).type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def cpu_flags() -> set:
+    """The CPU's feature flags as Linux lists them (x86 "flags", Arm "Features"); empty elsewhere."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() in ("flags", "Features"):
+                    return set(value.split())
+    except OSError:
+        pass
+    return set()
+
+
+# oneDNN's ISA names (ONEDNN_MAX_CPU_ISA) from which on it has bf16 instructions.
+ONEDNN_BF16_ISAS = ("AVX512_CORE_BF16", "AVX512_CORE_AMX", "AVX10", "ALL")
+
+
+def native_bf16() -> tuple[bool, str]:
+    """(whether this CPU computes bf16 natively, why): x86 with AVX-512's bf16 extension or AMX, Arm with
+    its bf16 instructions, unless ONEDNN_MAX_CPU_ISA keeps oneDNN below them. torch's CPU capability
+    ('AVX512', 'AVX2', 'DEFAULT') does not say it: an AVX-512 CPU without avx512_bf16 converts too.
+    Without native bf16, oneDNN emulates it: a bf16 2048^3 matmul ran at ~1 GFLOP/s against 55-130
+    fp32 on a 2-core AVX2 EPYC, and bf16 updates slow down alike. SEAR_ASSUME_NO_BF16=1 answers no, to
+    try that path on a machine that has bf16."""
+    capability = torch.backends.cpu.get_cpu_capability()
+    if os.environ.get("SEAR_ASSUME_NO_BF16") == "1":
+        return False, f"SEAR_ASSUME_NO_BF16=1 (CPU capability {capability})"
+    isa = os.environ.get("ONEDNN_MAX_CPU_ISA", "").upper()
+    if isa and not isa.startswith(ONEDNN_BF16_ISAS):
+        return False, f"ONEDNN_MAX_CPU_ISA={isa} (CPU capability {capability})"
+    native = sorted(cpu_flags() & {"avx512_bf16", "amx_bf16", "bf16"})
+    if native:
+        return True, f"CPU capability {capability}, {' '.join(native)}"
+    return False, f"CPU capability {capability}, no avx512_bf16, amx_bf16 or Arm bf16 in /proc/cpuinfo"
+
+
+def choose_precisions(args) -> None:
+    """args.precisions when not given: fp32 and bf16, but fp32 alone on a CPU that emulates bf16 (one
+    line says so); given, as given, with a line when bf16 is emulated."""
+    native, why = native_bf16() if torch.device(args.device).type == "cpu" else (True, "")
+    if args.precisions is None:
+        args.precisions = ["fp32", "bf16"] if native else ["fp32"]
+        if not native:
+            print(f"bf16: skipped, this CPU emulates it ({why}); --precisions bf16 times it anyway\n")
+    elif "bf16" in args.precisions and not native:
+        print(f"bf16: emulated on this CPU ({why}): its GEMM peak and updates take many times fp32's\n")
 
 
 def fake_batch(batch_size, action_dim=6, seed=0):
@@ -461,6 +515,104 @@ def profile_ops(agents: dict, batch, step, top=15):
     print(f"| all ops | {sum(times[a].values()):.1f} | {sum(times[b].values()):.1f} |\n")
 
 
+# The CUDA runtime and driver calls that block the host until the device has caught up: what .item(),
+# .tolist(), bool(t) and a copy to pageable host memory end in. cudaMemcpy (not ...Async) is synchronous.
+SYNC_CALLS = {"cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpy",
+              "cudaMemcpy2D", "cuStreamSynchronize", "cuCtxSynchronize", "cuEventSynchronize", "cuMemcpy"}
+
+
+class DeviceProfile(NamedTuple):
+    """Per update, from torch.profiler's events (`device_profile`)."""
+    kernel_ms: float        # sum of the CUDA kernels' durations
+    kernels: float          # kernels launched
+    h2d_bytes: float | None  # bytes of the host->device copies; None when the events carry no byte counts
+    h2d_copies: float
+    syncs: float            # SYNC_CALLS made by the host
+    sync_calls: dict        # name -> calls per update
+    top: list               # (kernel name, ms per update, launches per update), the longest first
+
+
+def device_profile(events, updates: int, top: int = 10, own_syncs: dict | None = None) -> DeviceProfile:
+    """Sum torch.profiler's events (prof.events(): FunctionEvents; only `name`, `device_type`,
+    `activity_type`, `time_range` and `event_metadata` are read) of `updates` updates. Device events: a
+    kernel (activity "kernel"), or a copy named "Memcpy HtoD (<src> -> Device)" whose bytes are its
+    `event_metadata.bytes`. Host events: the runtime and driver calls of SYNC_CALLS, less `own_syncs`
+    (name -> calls: the benchmark's own, such as the synchronize that ends the profiled updates)."""
+    time_us, launches, syncs = {}, {}, {k: -n for k, n in (own_syncs or {}).items()}
+    h2d, copies, known = 0, 0, True
+    for e in events:
+        on_device = getattr(e.device_type, "name", str(e.device_type)) != "CPU"
+        if on_device and e.name.startswith("Memcpy HtoD"):
+            copies += 1
+            nbytes = getattr(getattr(e, "event_metadata", None), "bytes", None)
+            known = known and nbytes is not None
+            h2d += nbytes or 0
+        elif on_device and getattr(e, "activity_type", None) == "kernel":
+            time_us[e.name] = time_us.get(e.name, 0.0) + e.time_range.elapsed_us()
+            launches[e.name] = launches.get(e.name, 0) + 1
+        elif not on_device and e.name in SYNC_CALLS:
+            syncs[e.name] = syncs.get(e.name, 0) + 1
+    syncs = {k: n for k, n in syncs.items() if n > 0}
+    longest = sorted(time_us, key=lambda k: -time_us[k])[:top]
+    return DeviceProfile(sum(time_us.values()) / 1e3 / updates, sum(launches.values()) / updates,
+                         h2d / updates if known else None, copies / updates, sum(syncs.values()) / updates,
+                         {k: n / updates for k, n in syncs.items()},
+                         [(k, time_us[k] / 1e3 / updates, launches[k] / updates) for k in longest])
+
+
+def batch_bytes(batch) -> int:
+    return sum(np.asarray(x).nbytes for x in batch)
+
+
+def update_profile(args, top=10):
+    """--profile on CUDA: each method's update, per update: host seconds (the call's own, returning before
+    the device has finished unless it syncs), wall seconds with the device's work (a sync after the
+    loop), then from torch.profiler (CPU and CUDA activities) over the same number of updates: kernel
+    time, kernels launched, host->device bytes (from the batch when the events carry none), host syncs,
+    and the longest kernels."""
+    batch = fake_batch(args.batch_size)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if torch.device(args.device).type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    print(f"## Per update on {args.device} (batch {args.batch_size}, {args.updates} updates after 2 of warm-up; "
+          "kernels, copies and syncs from torch.profiler)\n")
+    print("| method | precision | host s/update | wall s/update | GPU kernel ms/update | kernels/update | "
+          "H2D MB/update | H2D copies/update | host syncs/update |\n|---|---|---|---|---|---|---|---|---|")
+    tops = {}
+    for precision in args.precisions:
+        for method in args.methods:
+            agent = make_agent(method, precision, args.batch_size, args.device)
+            for _ in range(2):  # cuDNN's algorithm search, the caching allocator's first blocks
+                agent.update(batch, step=5_000)
+            sync(args.device)
+            host, start = 0.0, time.perf_counter()
+            for _ in range(args.updates):
+                t = time.perf_counter()
+                agent.update(batch, step=5_000)
+                host += time.perf_counter() - t
+            sync(args.device)
+            wall = (time.perf_counter() - start) / args.updates
+            with torch.profiler.profile(activities=activities) as prof:
+                for _ in range(args.updates):
+                    agent.update(batch, step=5_000)
+                sync(args.device)  # the last kernels inside the profile; this sync is not the update's
+            p = device_profile(prof.events(), args.updates, top, own_syncs={"cudaDeviceSynchronize": 1})
+            h2d = (f"{p.h2d_bytes / 1e6:.1f}" if p.h2d_bytes is not None
+                   else f"{batch_bytes(batch) / 1e6:.1f} (the batch)")
+            syncs = f"{p.syncs:g}" + (f" ({', '.join(f'{k} {n:g}' for k, n in p.sync_calls.items())})" if p.syncs else "")
+            print(f"| {method} | {precision} | {host / args.updates:.4f} | {wall:.4f} | {p.kernel_ms:.2f} | "
+                  f"{p.kernels:g} | {h2d} | {p.h2d_copies:g} | {syncs} |", flush=True)
+            tops[method, precision] = p.top
+            del agent
+    for (method, precision), rows in tops.items():
+        if rows:
+            print(f"\n### {method}, {precision}: the {len(rows)} longest kernels\n\n"
+                  "| kernel | ms/update | launches/update |\n|---|---|---|")
+            for name, ms, n in rows:
+                print(f"| {name[:100]} | {ms:.3f} | {n:g} |")
+    print()
+
+
 def subnormals(t) -> int:
     t = t.detach()
     return int(((t != 0) & (t.abs() < torch.finfo(t.dtype).tiny)).sum()) if t.is_floating_point() else 0
@@ -570,7 +722,8 @@ def main():
                    "comparisons (--compare-allocators: the heap of a fresh process grows for the first 3)")
     p.add_argument("--methods", nargs="+", default=["drq", "sear"],
                    choices=[m + drm for drm in ("", cli.DRM_SUFFIX) for m in sear.METHODS])
-    p.add_argument("--precisions", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16"])
+    p.add_argument("--precisions", nargs="+", choices=["fp32", "bf16"],
+                   help="default: fp32 and bf16; fp32 alone on a CPU without native bf16 (native_bf16)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: sear.py's default)")
     p.add_argument("--env", default="walker-walk", help="env of the training-step split")
@@ -597,7 +750,8 @@ def main():
     p.add_argument("--batches", type=int, default=4, help="--snapshot: batches drawn from the run's buffer")
     p.add_argument("--profile", action="store_true",
                    help="--snapshot, --compare-compile: per-op CPU times of one update each (trained and fresh; "
-                        "eager and compiled)")
+                        "eager and compiled); on CUDA otherwise: per update, host and wall time, kernel time, "
+                        "kernels launched, host->device bytes, host syncs, the longest kernels")
     p.add_argument("--subnormals", action="store_true",
                    help="--snapshot: subnormal floats in one update's outputs, gradients, weights and Adam state")
     p.add_argument("--flush-denormal", action="store_true",
@@ -614,29 +768,32 @@ def main():
         return snapshot_comparison(args)
     if args.compare_allocators:
         return compare_allocators(args)
-    if args.compare_layouts:
-        return compare_layouts(args)
-    if args.compare_compile:
-        return compile_comparison(args)
     if args.updates_only:  # one method: the child process of --compare-allocators prints its Cost
         agent = make_agent(args.methods[0], "fp32", args.batch_size, args.device)
         batch = fake_batch(args.batch_size)
         print(*measure(lambda i: agent.update(batch, step=5_000), args.updates, args.warmup))
         return
+    choose_precisions(args)
+    if args.compare_layouts:
+        return compare_layouts(args)
+    if args.compare_compile:
+        return compile_comparison(args)
 
-    peaks = {"fp32": gemm_gflops(torch.float32, args.device), "bf16": gemm_gflops(torch.bfloat16, args.device)}
+    peaks = {p: gemm_gflops({"fp32": torch.float32, "bf16": torch.bfloat16}[p], args.device) for p in args.precisions}
     n = gemm_size(args.device)[0]
     on = (f"{torch.cuda.get_device_name(args.device)} (fp32 matmul TF32: {torch.backends.cuda.matmul.allow_tf32}, "
           f"cuDNN conv TF32: {torch.backends.cudnn.allow_tf32})" if torch.device(args.device).type == "cuda"
           else f"{os.cpu_count()} cores, {torch.get_num_threads()} torch threads")
     print(f"## Machine\n\n{on}; GEMM {n}^3 on {args.device}: "
-          f"fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s\n")
+          + ", ".join(f"{p} {g:.0f} GFLOP/s" for p, g in peaks.items()) + "\n")
     print("## Replay buffer footprint\n\n| action dim | bytes / transition | 1M transitions |\n|---|---|---|")
     for a in (6, 4, 9, 28):
         b = sear.ReplayBuffer(1, (3, 84, 84), a, frame_stack=3, nstep=3, discount=0.99).bytes_per_transition
         print(f"| {a} | {b} | {b * 1e6 / 2**30:.1f} GiB |")
     print("\n(official drqv2 stores 63.5 KB per step)\n")
     update_table(args, peaks)
+    if args.profile and torch.device(args.device).type == "cuda":
+        update_profile(args)
     if args.breakdown:
         op_breakdown(args, peaks)
     if args.split_steps:

@@ -2,8 +2,12 @@
 # What only a GPU can show, in <= 8 minutes on one GPU, into one summary file:
 #   tests    the tests that take a device (tests/conftest.py: SEAR_TEST_DEVICE=cuda, `-m device`), and sear.py's
 #            smoke run and exact --resume test (test_cli.py; sear.py picks CUDA itself with --device auto)
+#   counts   ops, host syncs and host->device bytes of one update of every method (update_counts.py; on the GPU
+#            the counts of CUDA's path, with torch's default foreach Adam)
 #   update   s/update of drq and sear at batch 256: eager, --compile, --compile --cuda-graphs
 #            (bench_agent.py --compare-compile, compile time apart)
+#   profile  drq's and sear's update at batch 256 through torch.profiler (bench_agent.py --profile): host and wall
+#            time, GPU kernel time, kernels launched, host->device bytes, host syncs, the longest kernels
 #   envs     env steps/s with MUJOCO_GL=egl, and which OpenGL renderer drew them (the GPU's, or Mesa's llvmpipe
 #            if EGL fell back to software)
 #   split    bench_agent.py: each method's s/update and share of the GPU's fp32 / bf16 GEMM peak measured in the
@@ -21,9 +25,12 @@
 # than its minimum left is reported as skipped; one that fails (a mode that does not compile, say) is reported
 # and the rest still run. --quick runs a fast subset of the device tests and only collects the rest (a test
 # selection that no longer matches anything fails), trains tiny networks for a few hundred frames, benchmarks at
-# batch 8 and skips the CUDA-only mode (graphs). Writes DIR (default runs/gpu_check-<UTC time>[-quick]; never an
-# existing one): summary.md, each step's log, the training runs. Exit status: 0 when every step that ran passed,
-# 1 otherwise, 2 for bad arguments. Needs only requirements.txt's packages (torch 2.11 or later).
+# batch 8, counts tiny networks and skips what needs CUDA (graphs, profile); on a CPU without native bf16
+# (bench_agent.native_bf16; SEAR_ASSUME_NO_BF16=1 pretends so) it skips the bf16 training run, and bench_agent.py
+# its bf16 GEMM peak and updates, each with a line saying so: emulated bf16 runs many times slower than fp32.
+# Writes DIR (default runs/gpu_check-<UTC time>[-quick]; never an existing one): summary.md, each step's log, the
+# training runs. Exit status: 0 when every step that ran passed, 1 otherwise, 2 for bad arguments. Needs only
+# requirements.txt's packages (torch 2.11 or later).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 quick=0
@@ -46,14 +53,19 @@ for m in $runs; do
   [[ " $modes " == *" $m "* ]] || { echo "gpu_check.sh: error: unknown mode $m in --runs (modes: $modes)" >&2; exit 2; }
 done
 for s in $skip; do
-  [[ " tests update envs split train layouts " == *" $s "* ]] ||
-    { echo "gpu_check.sh: error: unknown step $s in --skip (steps: tests update envs split train layouts)" >&2; exit 2; }
+  [[ " tests counts update profile envs split train layouts " == *" $s "* ]] ||
+    { echo "gpu_check.sh: error: unknown step $s in --skip (steps: tests counts update profile envs split train layouts)" >&2
+      exit 2; }
 done
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 budget=480
+bf16_note=""
 if [ $quick = 1 ]; then
   device=cpu; seconds=${RUN_SECONDS:-60}; compile_seconds=${COMPILE_SECONDS:-240}; suffix=-quick
   runs=${runs:-"eager prefetch-off bf16 compile graphs"}
+  # A CPU that emulates bf16 (no avx512_bf16 / amx_bf16) trains and benchmarks it many times slower than fp32.
+  bf16_note=$(python -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_agent
+native, why = bench_agent.native_bf16(); print('' if native else why)" 2>/dev/null) || bf16_note="native_bf16 failed"
 else
   device=cuda; seconds=${RUN_SECONDS:-40}; compile_seconds=${COMPILE_SECONDS:-40}; suffix=""
   runs=${runs:-"eager compile graphs"}
@@ -130,7 +142,17 @@ if wanted tests; then
   fi
 fi
 
-# 2. The update: eager, compiled, compiled + CUDA graphs. Action size 1 (cartpole's): the compiled graphs are the
+# 2. What one update dispatches: ops, host syncs, host->device bytes (the GPU's own path on CUDA).
+if wanted counts; then
+  if [ $quick = 1 ]; then
+    step counts 17 0 python benchmarks/update_counts.py --latent-dim 64 --hidden-dim 32 --feature-dim 16 \
+      --batch-size 4 --top 0
+  else
+    step counts 17 20 python benchmarks/update_counts.py --device cuda --top 10
+  fi
+fi
+
+# 3. The update: eager, compiled, compiled + CUDA graphs. Action size 1 (cartpole's): the compiled graphs are the
 # training runs', whose compiling then comes from inductor's cache.
 if wanted update; then
   if [ $quick = 1 ]; then
@@ -142,11 +164,21 @@ if wanted update; then
   fi
 fi
 
-# 3. Env steps/s, rendered through EGL (on the GPU when its driver provides EGL).
+# 4. Where the update's time goes on the GPU: host time, kernels, copies, syncs (torch.profiler).
+if wanted profile; then
+  if [ $quick = 1 ]; then
+    note "profile: skipped, it reads CUDA kernels and copies (tests/test_bench_agent.py checks its summary on the CPU)"
+  else
+    step profile 40 30 python benchmarks/bench_agent.py --device cuda --profile --methods drq sear --batch-size 256 \
+      --precisions fp32 --updates 10 --split-steps 0
+  fi
+fi
+
+# 5. Env steps/s, rendered through EGL (on the GPU when its driver provides EGL).
 wanted envs && step envs 6 15 python benchmarks/bench_envs.py --steps "$([ $quick = 1 ] && echo 3 || echo 300)" \
   --envs cartpole-balance_sparse walker-walk
 
-# 4. s/update and the share of the GEMM peaks measured in this run; a training step, part by part.
+# 6. s/update and the share of the GEMM peaks measured in this run; a training step, part by part.
 if wanted split; then
   if [ $quick = 1 ]; then
     step split 40 0 python benchmarks/bench_agent.py --device cpu --methods drq --batch-size 8 --updates 1 \
@@ -157,7 +189,7 @@ if wanted split; then
   fi
 fi
 
-# 5. Training runs: the published-curve rung's command (EXPERIMENTS.md), sear, cut short by a timer.
+# 7. Training runs: the published-curve rung's command (EXPERIMENTS.md), sear, cut short by a timer.
 rung=(--env cartpole-balance_sparse --method sear --seed 1 --action-repeat 2 --frame-stack 3 --batch-size 256
       --lr 1e-4 --nstep 3 --discount 0.99 --std-start 1.0 --std-end 0.1 --std-steps 100000 --std-clip 0.3
       --seed-frames 4000 --exploration-steps 2000 --update-every 2 --critic-tau 0.01 --feature-dim 50
@@ -180,6 +212,10 @@ for mode in $runs; do
   wanted train || break
   if [ $mode = graphs ] && [ $device != cuda ]; then
     note "train-$mode: skipped, CUDA graphs need a CUDA device"
+    continue
+  fi
+  if [ $mode = bf16 ] && [ -n "$bf16_note" ]; then
+    note "train-$mode: skipped, this CPU emulates bf16 ($bf16_note)"
     continue
   fi
   s=$seconds
@@ -206,7 +242,7 @@ print(f"\n{last}; training after the seed frames: " + (
 EOF
 done
 
-# 6. channels_last against NCHW.
+# 8. channels_last against NCHW.
 if wanted layouts; then
   if [ $quick = 1 ]; then
     step layouts 6 0 python benchmarks/bench_agent.py --device cpu --compare-layouts --methods drq --precisions fp32 \
