@@ -10,7 +10,7 @@ DrQ-v2 update timed against this project's drq update in the same process.
     python benchmarks/bench_agent.py --compare-allocators             # glibc default vs tunables vs mallopt
     python benchmarks/bench_agent.py --breakdown --split-steps 0      # + time and GFLOP/s per op class
     python benchmarks/bench_agent.py --compare-layouts --rounds 3 --updates 2   # channels_last vs NCHW
-    python benchmarks/bench_agent.py --compare-compile --official DIR --precisions fp32   # eager vs --compile
+    python benchmarks/bench_agent.py --compare-compile --official DIR --precisions fp32   # eager vs --compile (TF32 off/on on CUDA)
     python benchmarks/bench_agent.py --snapshot runs/<run dir> --profile --subnormals     # trained vs fresh
     python benchmarks/bench_agent.py --device cuda --profile --precisions fp32 --split-steps 0   # kernels, syncs, H2D
     python benchmarks/bench_agent.py --snapshot runs/<run dir> --threads 1 --flush-denormal   # + subnormals flushed
@@ -125,6 +125,12 @@ def fake_batch(batch_size, action_dim=6, seed=0):
             rng.integers(0, 2, (n, 3, 84, 84), dtype=np.uint8))
 
 
+def device_batch(batch, device):
+    """The batch as the replay on the run's device hands it to the update: tensors already there (uint8
+    frames and masks), so a timed update copies nothing from the host."""
+    return sear.Batch._make(torch.as_tensor(x).to(device) for x in batch)
+
+
 def make_agent(method, precision, batch_size, device="cpu", action_dim=6):
     """method: a sear.py method, or METHOD+drm for it with --drm."""
     method, drm_flag = cli.split_method_label(method)
@@ -152,7 +158,7 @@ def peak_rss_gb():
 
 
 def update_table(args, peaks):
-    batch = fake_batch(args.batch_size)
+    batch = device_batch(fake_batch(args.batch_size), args.device)
     print(f"## Updates at batch {args.batch_size} on {args.device} ({torch.get_num_threads()} threads), "
           f"{args.updates} timed updates each\n")
     print("| method | precision | GFLOP/update | s/update | GFLOP/s | share of GEMM peak | peak RSS so far |")
@@ -189,7 +195,7 @@ def op_breakdown(args, peaks):
     profiler's inclusive CPU time of that op on the calling thread), and the rest (memory-bound ops:
     shift, ReLU, layout copies, optimiser, losses). The last column bounds what the update can reach
     with the rest at zero: the FLOP ops' own speed."""
-    batch = fake_batch(args.batch_size)
+    batch = device_batch(fake_batch(args.batch_size), args.device)
     print(f"## Where an update's time goes (batch {args.batch_size}, {torch.get_num_threads()} threads, one profiled update)\n")
     print("| method | precision | op class | GFLOP | seconds | GFLOP/s | share of GEMM peak |")
     print("|---|---|---|---|---|---|---|")
@@ -311,6 +317,8 @@ def official_update(args, batch):
 
 
 def our_update(agent, batch, device):
+    batch = device_batch(batch, device)
+
     def update(i):
         agent.update(batch, step=5_000)
         sync(device)
@@ -333,14 +341,23 @@ def official_comparison(args):
     print(f"\nmedian official/ours {np.median(ratios):.2f}, range {min(ratios):.2f}-{max(ratios):.2f}; {load()}\n")
 
 
+def tf32_update(update, on: bool):
+    """`update` with TF32 set as asked before every call (it is process-wide: contenders alternate)."""
+    def run(i):
+        cli.set_tf32(on)
+        update(i)
+    return run
+
+
 def compile_comparison(args):
-    """--compare-compile: each method's update eager (the reference), through --compile, and with
-    --cuda-graphs on CUDA, and for drq with --official the official update, alternating rounds on the
-    same batch in this process; the compiling (the first two updates, at two step numbers) timed
-    apart. A mode that fails is reported and left out."""
+    """--compare-compile: each method's update eager (the reference) and through --compile (on CUDA
+    replayed as a CUDA graph), on CUDA each with TF32 off (the default) and on, and for drq with
+    --official the official update, alternating rounds on the same batch in this process; the
+    compiling (the first two updates, at two step numbers) timed apart. A mode that fails is reported
+    and left out."""
     batch = fake_batch(args.batch_size, args.action_dim)
-    graphs = torch.device(args.device).type == "cuda"
-    print(f"## Eager vs --compile{' vs --cuda-graphs' if graphs else ''} (batch {args.batch_size}, "
+    cuda = torch.device(args.device).type == "cuda"
+    print(f"## Eager vs --compile{' (a CUDA graph), TF32 off and on' if cuda else ''} (batch {args.batch_size}, "
           f"{torch.get_num_threads()} threads on {args.device}, {args.rounds} alternating rounds x {args.updates} "
           f"updates, median; compile time apart); {load()}\n")
     # The ratios are of CPU seconds (all threads of this process): on a shared machine wall seconds count
@@ -350,34 +367,37 @@ def compile_comparison(args):
     for precision in args.precisions:
         for method in args.methods:
             eager = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
-            contenders, compile_s, rows, compiled = {"eager": our_update(eager, batch, args.device)}, {}, [], {}
-            for mode, run in (("compiled", cli.RunConfig(compile=True)),
-                              ("compiled + CUDA graphs", cli.RunConfig(compile=True, cuda_graphs=True)))[:1 + graphs]:
-                agent = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
-                agent.load_state_dict(eager.state_dict())
-                try:
-                    experiment.compile_update(agent, run)
-                    start = time.perf_counter()
-                    for step in (5_000, 5_002):
-                        agent.update(batch, step)
-                    sync(args.device)
-                    compile_s[mode] = time.perf_counter() - start
-                    contenders[mode], compiled[mode] = our_update(agent, batch, args.device), agent
-                except Exception as e:  # a compiler or graph failure: say it, time the rest
-                    rows.append(f"| {method} | {precision} | {mode} | failed: {cli.first_sentence(e)[:150]} | | | | |")
+            contenders, compile_s, rows, compiled = {"eager": our_update(eager, batch, args.device)}, {}, [], None
+            agent = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
+            agent.load_state_dict(eager.state_dict())
+            try:
+                agent.compile()
+                start = time.perf_counter()
+                for step in (5_000, 5_002):
+                    agent.update(device_batch(batch, args.device), step)
+                sync(args.device)
+                compile_s["compiled"] = time.perf_counter() - start
+                contenders["compiled"], compiled = our_update(agent, batch, args.device), agent
+            except Exception as e:  # a compiler or graph failure: say it, time the rest
+                rows.append(f"| {method} | {precision} | compiled | failed: {cli.first_sentence(e)[:150]} | | | | |")
+            if cuda:  # each mode with TF32 off (the default) and on
+                contenders = {f"{mode}, TF32 {'on' if on else 'off'}": tf32_update(update, on)
+                              for mode, update in contenders.items() for on in (False, True)}
+                compile_s = {f"{mode}, TF32 off": s for mode, s in compile_s.items()}
             if args.official and method == "drq" and precision == "fp32":
                 contenders["official DrQ-v2"] = official_update(args, fake_batch(args.batch_size))  # its 6 actions
             costs = {k: median(c) for k, c in alternate(contenders, args.rounds, args.updates).items()}
-            official = costs.get("official DrQ-v2")
+            cli.set_tf32(False)
+            official, reference = costs.get("official DrQ-v2"), costs.get("eager", costs.get("eager, TF32 off"))
             for mode, c in costs.items():
                 rows.append(f"| {method} | {precision} | {mode} | {c.wall:.3f} | {c.cpu:.3f} | "
-                            f"{costs['eager'].cpu / c.cpu:.2f} | "
+                            f"{reference.cpu / c.cpu:.2f} | "
                             f"{f'{official.cpu / c.cpu:.2f}' if official else ''} | "
                             f"{f'{compile_s[mode]:.0f}' if mode in compile_s else ''} |")
             print("\n".join([header, *rows] if header else rows), flush=True)  # after dynamo's warnings, if any
             header = None
-            if args.profile and "compiled" in compiled:  # where the compiled update's time goes, op by op
-                profile_ops({"eager": eager, "compiled": compiled["compiled"]}, batch, 5_000, top=25)
+            if args.profile and compiled is not None:  # where the compiled update's time goes, op by op
+                profile_ops({"eager": eager, "compiled": compiled}, device_batch(batch, args.device), 5_000, top=25)
                 header = head
             torch._dynamo.reset()  # dynamo caches per function, over agents: the next method's agents start afresh
     print(f"\n{load('(at the end)')}\n")
@@ -570,7 +590,7 @@ def update_profile(args, top=10):
     loop), then from torch.profiler (CPU and CUDA activities) over the same number of updates: kernel
     time, kernels launched, host->device bytes (from the batch when the events carry none), host syncs,
     and the longest kernels."""
-    batch = fake_batch(args.batch_size)
+    batch = device_batch(fake_batch(args.batch_size), args.device)
     activities = [torch.profiler.ProfilerActivity.CPU]
     if torch.device(args.device).type == "cuda":
         activities.append(torch.profiler.ProfilerActivity.CUDA)
@@ -656,7 +676,7 @@ def subnormal_table(agents: dict, batch, step):
 def compare_layouts(args):
     """Each method's update with the encoder and decoders in channels_last (as sear.py) and set back
     to NCHW, alternating in this process on the same batch."""
-    batch = fake_batch(args.batch_size)
+    batch = device_batch(fake_batch(args.batch_size), args.device)
     print(f"## Layout: NCHW vs channels_last (batch {args.batch_size}, {torch.get_num_threads()} threads, "
           f"{args.rounds} alternating rounds x {args.updates} updates, median)\n")
     print("| method | precision | channels_last s/update | NCHW s/update | NCHW / channels_last |\n|---|---|---|---|---|")
@@ -741,7 +761,7 @@ def main():
     p.add_argument("--compare-layouts", action="store_true",
                    help="time each method with the conv nets in channels_last (sear.py) and in NCHW, alternating")
     p.add_argument("--compare-compile", action="store_true",
-                   help="time each method eager, with --compile (and --cuda-graphs on CUDA), and the official "
+                   help="time each method eager and with --compile (on CUDA: a CUDA graph, TF32 off and on), and the official "
                         "update with --official, alternating; compile time apart")
     p.add_argument("--action-dim", type=int, default=6, help="--compare-compile: the agents' action size (the "
                    "compiled graphs are then those of a task with as many; cartpole 1, walker 6)")
@@ -770,7 +790,7 @@ def main():
         return compare_allocators(args)
     if args.updates_only:  # one method: the child process of --compare-allocators prints its Cost
         agent = make_agent(args.methods[0], "fp32", args.batch_size, args.device)
-        batch = fake_batch(args.batch_size)
+        batch = device_batch(fake_batch(args.batch_size), args.device)
         print(*measure(lambda i: agent.update(batch, step=5_000), args.updates, args.warmup))
         return
     choose_precisions(args)

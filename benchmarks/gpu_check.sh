@@ -4,8 +4,8 @@
 #            smoke run and exact --resume test (test_cli.py; sear.py picks CUDA itself with --device auto)
 #   counts   ops, host syncs and host->device bytes of one update of every method (update_counts.py; on the GPU
 #            the counts of CUDA's path, with torch's default foreach Adam)
-#   update   s/update of drq and sear at batch 256: eager, --compile, --compile --cuda-graphs
-#            (bench_agent.py --compare-compile, compile time apart)
+#   update   s/update of drq and sear at batch 256: eager and --compile (a CUDA graph), each with TF32 off (the
+#            default) and on (bench_agent.py --compare-compile, compile time apart)
 #   profile  drq's and sear's update at batch 256 through torch.profiler (bench_agent.py --profile): host and wall
 #            time, GPU kernel time, kernels launched, host->device bytes, host syncs, the longest kernels
 #   envs     env steps/s with MUJOCO_GL=egl, and which OpenGL renderer drew them (the GPU's, or Mesa's llvmpipe
@@ -14,8 +14,9 @@
 #            same run, and where a training step's time goes (env / act / sample / update)
 #   train-M  a training run of the published-curve rung's command (cartpole-balance_sparse, sear, DrQ-v2's config,
 #            EXPERIMENTS.md) per mode M of --runs, RUN_SECONDS each (compiled modes COMPILE_SECONDS more), stopped by
-#            Ctrl-C (SIGINT): frames/s after the seed frames. Modes: eager (--prefetch on, what CUDA runs by
-#            default), prefetch-off, bf16, compile, graphs (--compile --cuda-graphs)
+#            Ctrl-C (SIGINT): frames/s after the seed frames. Modes: eager (what CUDA runs by default: the replay on
+#            the GPU, TF32 off), host-replay (--replay-device cpu: the replay on the host, batches copied by the
+#            prefetcher), bf16, tf32, compile (--compile: one CUDA graph), compile-tf32
 #   layouts  channels_last (sear.py's conv layout) against NCHW, s/update (bench_agent.py --compare-layouts)
 #
 #   benchmarks/gpu_check.sh [--out DIR] [--runs "MODES"] [--skip "STEPS"]   on a machine with a CUDA GPU
@@ -25,7 +26,7 @@
 # than its minimum left is reported as skipped; one that fails (a mode that does not compile, say) is reported
 # and the rest still run. --quick runs a fast subset of the device tests and only collects the rest (a test
 # selection that no longer matches anything fails), trains tiny networks for a few hundred frames, benchmarks at
-# batch 8, counts tiny networks and skips what needs CUDA (graphs, profile); on a CPU without native bf16
+# batch 8, counts tiny networks and skips what needs CUDA (TF32, profile); on a CPU without native bf16
 # (bench_agent.native_bf16; SEAR_ASSUME_NO_BF16=1 pretends so) it skips the bf16 training run, and bench_agent.py
 # its bf16 GEMM peak and updates, each with a line saying so: emulated bf16 runs many times slower than fp32.
 # Writes DIR (default runs/gpu_check-<UTC time>[-quick]; never an existing one): summary.md, each step's log, the
@@ -37,7 +38,7 @@ quick=0
 out=""
 runs=""
 skip=""
-modes="eager prefetch-off bf16 compile graphs"
+modes="eager host-replay bf16 tf32 compile compile-tf32"
 while [ $# -gt 0 ]; do
   case $1 in
     --quick) quick=1 ;;
@@ -62,13 +63,13 @@ budget=480
 bf16_note=""
 if [ $quick = 1 ]; then
   device=cpu; seconds=${RUN_SECONDS:-60}; compile_seconds=${COMPILE_SECONDS:-240}; suffix=-quick
-  runs=${runs:-"eager prefetch-off bf16 compile graphs"}
+  runs=${runs:-"eager bf16 compile"}
   # A CPU that emulates bf16 (no avx512_bf16 / amx_bf16) trains and benchmarks it many times slower than fp32.
   bf16_note=$(python -c "import sys; sys.path.insert(0, 'benchmarks'); import bench_agent
 native, why = bench_agent.native_bf16(); print('' if native else why)" 2>/dev/null) || bf16_note="native_bf16 failed"
 else
   device=cuda; seconds=${RUN_SECONDS:-40}; compile_seconds=${COMPILE_SECONDS:-40}; suffix=""
-  runs=${runs:-"eager compile graphs"}
+  runs=${runs:-"eager compile compile-tf32 host-replay"}
   if ! python -c "import sys, torch; sys.exit(not torch.cuda.is_available())" 2>/dev/null; then
     echo "gpu_check.sh: error: torch sees no CUDA device; on a CPU run benchmarks/gpu_check.sh --quick" >&2
     exit 2
@@ -152,7 +153,7 @@ if wanted counts; then
   fi
 fi
 
-# 3. The update: eager, compiled, compiled + CUDA graphs. Action size 1 (cartpole's): the compiled graphs are the
+# 3. The update: eager and compiled (a CUDA graph), TF32 off and on. Action size 1 (cartpole's): the compiled graphs are the
 # training runs', whose compiling then comes from inductor's cache.
 if wanted update; then
   if [ $quick = 1 ]; then
@@ -201,17 +202,18 @@ rung+=(--eval-episodes 1 --eval-every 1000000 --device $device)
 seed_frames=$([ $quick = 1 ] && echo 80 || echo 4000)
 mode_flags() {
   case $1 in
-    eager) echo --prefetch on ;;
-    prefetch-off) echo --prefetch off ;;
-    bf16) echo --prefetch on --precision bf16 ;;
-    compile) echo --prefetch on --compile ;;
-    graphs) echo --prefetch on --compile --cuda-graphs ;;
+    eager) echo ;;
+    host-replay) echo --replay-device cpu ;;
+    bf16) echo --precision bf16 ;;
+    tf32) echo --tf32 ;;
+    compile) echo --compile ;;
+    compile-tf32) echo --compile --tf32 ;;
   esac
 }
 for mode in $runs; do
   wanted train || break
-  if [ $mode = graphs ] && [ $device != cuda ]; then
-    note "train-$mode: skipped, CUDA graphs need a CUDA device"
+  if [[ $mode == *tf32 || $mode == host-replay ]] && [ $device != cuda ]; then
+    note "train-$mode: skipped, TF32 and a replay apart from the device are CUDA's"
     continue
   fi
   if [ $mode = bf16 ] && [ -n "$bf16_note" ]; then
@@ -219,7 +221,7 @@ for mode in $runs; do
     continue
   fi
   s=$seconds
-  [[ $mode == compile || $mode == graphs ]] && s=$((seconds + compile_seconds))
+  [[ $mode == compile* ]] && s=$((seconds + compile_seconds))
   least=$((s / 2 + 20))
   left=$((budget - (SECONDS - start) - 20))  # its Ctrl-C timer ends inside the budget, with time to stop
   [ $quick = 1 ] || [ $left -ge $s ] || s=$left
