@@ -525,7 +525,8 @@ class Prefetcher:
 def save_buffer(buffer, path):
     """buffer.npz: the filled slots of the ring in physical order, and `t` (the episode index follows
     from the `first` flags)."""
-    write_atomically(path, lambda f: np.savez(f, **buffer.arrays()))
+    arrays = {name: getattr(buffer, name)[:len(buffer)].cpu().numpy() for name in buffer.ARRAYS}
+    write_atomically(path, lambda f: np.savez(f, t=buffer.t, **arrays))
 
 
 def load_buffer(buffer, path):

@@ -8,11 +8,8 @@ c2 = 0.0025). Other representation losses plug into the same seam (`AuxLoss`, on
 baselines.py adds the paper's baselines, drm.py adds DrM (`DrMAgent`).
 
 In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
-6. Replay buffer. This file needs torch, numpy and the standard library only; the training loop, the
-envs and the command line stand on it in train.py (`python sear.py ...` runs train.py).
-
-Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
-        python sear.py --resume runs/<run dir>     |     python sear.py --evaluate runs/<run dir>
+6. Replay buffer. It needs torch, numpy and the standard library only; the training loop, the envs and
+the command line stand on it in train.py: `python sear.py --env walker-walk-distracting` runs train.py.
 """
 from __future__ import annotations
 
@@ -325,14 +322,14 @@ METHODS = {
 # 5. Agent
 # ================================================================================================
 class Batch(NamedTuple):
-    """n-step transitions, as the replay buffer samples them (numpy) and the update takes them."""
-    obs: np.ndarray | torch.Tensor        # (B, 3 x stack, H, W) RGB frames, uint8
-    mask: np.ndarray | torch.Tensor       # (B, stack, H, W) the robot's masks, 0/1
-    action: np.ndarray | torch.Tensor     # (B, A) the action taken at obs
-    reward: np.ndarray | torch.Tensor     # (B, 1) the n-step return R
-    discount: np.ndarray | torch.Tensor   # (B, 1) gamma^m of the bootstrap, 0 after a termination
-    next_obs: np.ndarray | torch.Tensor   # the observation m <= n steps later
-    next_mask: np.ndarray | torch.Tensor
+    """n-step transitions, as the replay buffer samples them and the update takes them (tensors)."""
+    obs: torch.Tensor        # (B, 3 x stack, H, W) RGB frames, uint8
+    mask: torch.Tensor       # (B, stack, H, W) the robot's masks, 0/1
+    action: torch.Tensor     # (B, A) the action taken at obs
+    reward: torch.Tensor     # (B, 1) the n-step return R
+    discount: torch.Tensor   # (B, 1) gamma^m of the bootstrap, 0 after a termination
+    next_obs: torch.Tensor   # the observation m <= n steps later
+    next_mask: torch.Tensor
 
 
 def linear_std(cfg: Config, step):
@@ -353,12 +350,10 @@ def actor_metrics(actor_loss, mu) -> dict:
 
 
 class Adam(torch.optim.Adam):
-    """torch.optim.Adam (betas 0.9 / 0.999, eps 1e-8), stepped on given gradients:
-    `opt.step(torch.autograd.grad(loss, opt.params))`. Its arithmetic is torch's CPU step, operation for
-    operation (the same weights to the bit), done as one foreach operation per term for all parameters,
-    with each step count a float64 tensor on its parameter's device: no per-parameter loop and no host
-    sync (torch's CPU step reads every count with .item()), so torch.compile traces the whole update into
-    one graph and a CUDA graph can replay it. Its state_dict is torch.optim.Adam's."""
+    """torch.optim.Adam, stepped on given gradients: `opt.step(torch.autograd.grad(loss, opt.params))`.
+    torch's CPU arithmetic to the bit, as one foreach operation per term over all parameters and each
+    step count a float64 tensor on the device: no per-parameter loop, no host sync (torch's CPU step reads
+    every count with .item()), one graph for torch.compile. Its state_dict is torch.optim.Adam's."""
 
     def __init__(self, params, lr):
         super().__init__(params, lr=lr)
@@ -396,10 +391,9 @@ class Adam(torch.optim.Adam):
             torch._foreach_addcmul_(v, grad, grad, 1 - beta2)
             # p += -lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps), the corrections in float64
             neg_step = torch._foreach_pow(beta1, t)
-            torch._foreach_neg_(neg_step)
-            torch._foreach_add_(neg_step, 1)
+            torch._foreach_sub_(neg_step, 1)  # -(1 - beta1^t), exactly
             torch._foreach_reciprocal_(neg_step)
-            torch._foreach_mul_(neg_step, -lr)
+            torch._foreach_mul_(neg_step, lr)
             root = torch._foreach_pow(beta2, t)
             torch._foreach_neg_(root)
             torch._foreach_add_(root, 1)
@@ -549,10 +543,9 @@ class Agent:
         return metrics
 
     def compile(self):
-        """--compile: learn() through torch.compile as one graph, replayed as a CUDA graph on CUDA (mode
-        reduce-overhead). fullgraph: a graph break is an error, on the CPU too, so the CPU's tests catch
-        what would break the CUDA graph. Eager stays the reference: on the CPU the compiled update draws
-        eager's random numbers (inductor's fallback_random) and equals it to rounding."""
+        """--compile: learn() as one torch.compile graph (a break is an error, on the CPU too), replayed as
+        a CUDA graph on CUDA. Eager stays the reference: on the CPU the compiled update draws eager's
+        random numbers (inductor's fallback_random) and equals it to rounding."""
         import torch._dynamo
         import torch._inductor.config
         torch._dynamo.config.trace_autograd_ops = True  # torch.autograd.grad inside the graph
@@ -565,31 +558,28 @@ class Agent:
         # A CUDA graph's outputs are overwritten by its next replay; the metrics wait for a log line.
         self.learn = lambda batch, step: {k: v.clone() for k, v in graph(batch, step).items()}
 
+    PARTS = ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux")  # aux: None for drq
+
     def state_dict(self):
-        return {"encoder": self.encoder.state_dict(), "actor": self.actor.state_dict(),
-                "critic": self.critic.state_dict(), "critic_target": self.critic_target.state_dict(),
-                "aux": self.aux.state_dict() if self.aux else None,
-                "model_opt": self.model_opt.state_dict(), "actor_opt": self.actor_opt.state_dict()}
+        return {name: None if getattr(self, name) is None else getattr(self, name).state_dict() for name in self.PARTS}
 
     def load_state_dict(self, state):
-        for name in ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux"):
-            if getattr(self, name) is not None:  # aux: the method's networks (None for drq and rgbm)
-                getattr(self, name).load_state_dict(state[name])
+        for name in (name for name in self.PARTS if getattr(self, name) is not None):
+            getattr(self, name).load_state_dict(state[name])
 
 
 # ================================================================================================
 # 6. Replay buffer
 # ================================================================================================
 class ReplayBuffer:
-    """A ring of time steps, in tensors on `device` (the run's GPU when it fits there: the update then
-    samples without copying from the host). Slot i holds the newest RGB frame of step i (uint8, stored
-    once), its robot mask bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led
-    to it, whether it is terminal, and whether it starts an episode. Frame stacks are rebuilt at sampling
-    time, never across an episode start (the first frame repeats, as at reset), masks unpacked and n-step
-    returns summed there, on the device. A time-limit end (truncation) bootstraps; a termination does not.
-    Draws follow DrQ-v2's loader (replay_buffer.py _sample): an episode uniformly among the finished
-    ones still whole in the ring, then a start whose whole n-step window lies in it; the episode index
-    and the draws stay on the host (numpy), so the only host->device copy of a batch is its start times."""
+    """A ring of time steps in tensors on `device` (the run's GPU when it fits there). Slot i holds the
+    newest RGB frame of step i (uint8, stored once), its robot mask bit-packed (np.packbits: 882 bytes for
+    84x84), the action and reward that led to it, whether it is terminal, whether it starts an episode.
+    Frame stacks (never across an episode start: the first frame repeats, as at reset), unpacked masks
+    and n-step returns are built at sampling, on the device. A time-limit end bootstraps; a termination
+    does not. Draws follow DrQ-v2's loader (replay_buffer.py _sample): an episode uniformly among the
+    finished ones whole in the ring, then a start whose n-step window lies in it; the index and the draws
+    stay on the host (numpy): the start times are a batch's only host->device copy."""
 
     def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu"):
         self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
@@ -637,12 +627,6 @@ class ReplayBuffer:
     def add(self, action, reward, terminated, obs):
         """One env.step(): the action taken, the reward it earned, and the observation it led to."""
         self._write(obs, action, reward, terminated, False)
-
-    # --- the saved ring (buffer.npz) ---
-    def arrays(self) -> dict:
-        """The filled slots in physical order, as numpy arrays, and t."""
-        n = len(self)
-        return {"t": self.t, **{a: getattr(self, a)[:n].cpu().numpy() for a in self.ARRAYS}}
 
     def load_arrays(self, arrays) -> None:
         """A saved ring back (a wrapped one in the same slots), and the episode index rebuilt from the

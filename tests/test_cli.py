@@ -210,7 +210,7 @@ def test_interrupt_between_episodes_writes_a_snapshot(tmp_path):
     """Ctrl-C while the loop sits between episodes (here: while the first snapshot is being
     written) saves that exact state; a deterministic stand-in for a well-timed SIGINT."""
     driver = (
-        "import sys, experiment, sear\n"
+        "import sys, experiment, sear, train\n"
         "real, calls = experiment.save_snapshot, []\n"
         "def ctrl_c_once(run_dir, payload):\n"
         "    calls.append(payload['counters']['step'])\n"

@@ -41,6 +41,9 @@ def test_compiled_update_equals_eager(device, method, drm):
     torch.manual_seed(0)
     eager = train.make_agent(cfg, action_dim=2, device=device)
     compiled = compiled_copy(eager)
+    # CURL's own step moves its encoder at 2 x its lr (20 x the agent's): a rounding-sized gradient that Adam
+    # turns into a step of that size changes the next losses by as much more
+    lr = max(cfg.lr, 2 * cfg.curl_lr if method == "curl" else 0)
     for i in range(UPDATES):
         batch = fake_batch(seed=i, device=device)
         torch.manual_seed(100 + i)
@@ -50,12 +53,11 @@ def test_compiled_update_equals_eager(device, method, drm):
         assert got.keys() == want.keys()
         assert all(torch.isfinite(torch.as_tensor(v)).all() for v in got.values()), got
         for k in want if same_draws else ():
-            assert float(got[k]) == pytest.approx(float(want[k]), rel=1e-4, abs=1e-5), (i, k)
+            assert float(got[k]) == pytest.approx(float(want[k]), rel=1e-4 * lr / cfg.lr, abs=1e-5), (i, k)
     for name in ("encoder", "actor", "critic", "critic_target", "aux") if same_draws else ():
         ours, theirs = getattr(compiled, name), getattr(eager, name)
         if ours is None:
             continue
-        lr = max(cfg.lr, 2 * cfg.curl_lr if method == "curl" else 0)  # CURL's own step moves its encoder at 2 x its lr
         for (pname, p), q in zip(ours.named_parameters(), theirs.parameters()):
             diff = (p - q).abs()
             assert diff.max() <= 2 * lr * UPDATES, f"{name}.{pname}"

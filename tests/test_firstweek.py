@@ -274,8 +274,8 @@ def sear_command(*args):
 
 @pytest.mark.skipif(not user_namespace_available(), reason="needs unprivileged user namespaces (unshare -rm)")
 def test_a_full_disk_is_one_line_and_the_last_snapshot_stands(tmp_path):
-    """A 6 MB tmpfs: the snapshot at frame 16 (before the first update: no optimiser state yet) and the
-    one at frame 32 (3.8 MB) fit, the next cannot (its .tmp beside the last)."""
+    """A 6 MB tmpfs: the snapshot at frame 16 (3.8 MB: Adam's moments exist from the start) fits, the
+    next cannot (its .tmp beside the last)."""
     disk, copy = tmp_path / "disk", tmp_path / "copy"
     disk.mkdir()
     r = in_user_namespace(
@@ -289,8 +289,8 @@ def test_a_full_disk_is_one_line_and_the_last_snapshot_stands(tmp_path):
     assert warning.startswith(f"sear.py: warning: {disk / 'runs' / run_dir.name}: 6.3 MB free, but this run's files "
                               f"need up to 7.3 MB more"), warning
     assert line.startswith(f"sear.py: error: cannot write '{disk / 'runs' / run_dir.name / 'snapshot.pt'}': "
-                           f"No space left on device (ENOSPC); the last snapshot (frame 32) stands"), line
-    assert not list(run_dir.rglob("*.tmp")) and snapshot_step(run_dir) == 16
+                           f"No space left on device (ENOSPC); the last snapshot (frame 16) stands"), line
+    assert not list(run_dir.rglob("*.tmp")) and snapshot_step(run_dir) == 8
 
 
 def test_a_file_size_limit_during_a_snapshot_is_one_line_and_leaves_the_old_one(a_run, tmp_path):

@@ -188,7 +188,8 @@ def test_copy_parts_copies_exactly_the_named_parts(parts, device):
         assert all(torch.equal(now[name][k], expected[k]) for k in expected), name
         if like not in copied:
             assert not any(torch.equal(now[name][k], saved[name][k]) for k in expected if k.endswith("weight")), name
-    assert not agent.model_opt.state and not agent.actor_opt.state   # optimisers fresh
+    assert all(not s["step"] and not s["exp_avg"].any() for opt in (agent.model_opt, agent.actor_opt)
+               for s in opt.state.values())  # optimisers fresh
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +246,7 @@ def test_finetune_starts_from_the_whole_source_agent_by_default(mt3_run, tmp_pat
     for part, like in (("encoder", "encoder"), ("aux", "aux"), ("actor", "actor"), ("critic", "critic"),
                        ("critic_target", "critic")):
         assert all(torch.equal(agent[part][k], source[like][k]) for k in source[like]), part
-    assert not agent["model_opt"]["state"]   # fresh optimiser, never stepped
+    assert all(not s["step"] and not s["exp_avg"].any() for s in agent["model_opt"]["state"].values())  # never stepped
 
 
 @pytest.mark.parametrize("extra, message", [

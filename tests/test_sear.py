@@ -192,6 +192,11 @@ def test_same_shift_moves_image_and_mask_identically():
 
 
 # ---------------------------------------------------------------- replay buffer
+def numpy(batch: sear.Batch) -> sear.Batch:
+    """A sampled batch (tensors on the ring's device) as numpy arrays."""
+    return sear.Batch._make(x.cpu().numpy() for x in batch)
+
+
 def make_obs(time_id, episode, stack=3, terminal=False):
     """A fake observation whose newest frame encodes (time, episode) in its pixels."""
     frame = np.zeros((3, 84, 84), dtype=np.uint8)
@@ -259,7 +264,7 @@ def test_nstep_returns_match_drqv2_and_termination_vs_truncation():
     log = fill(buf, episodes)
     buf.add_first(make_obs(len(log), len(episodes)))
     starts = sorted(reference_distribution(log, 3, len(episodes)))
-    obs, mask, action, ret, disc, next_obs, next_mask = buf.transitions(np.array(starts))
+    obs, mask, action, ret, disc, next_obs, next_mask = numpy(buf.transitions(np.array(starts)))
     by_start = {reference_sample(ep, idx, 3, 0.9)[0]: reference_sample(ep, idx, 3, 0.9)
                 for ep in reference_episodes(log) for idx in range(1, len(ep["time"]) - 2)}
     for i, l in enumerate(starts):
@@ -274,12 +279,53 @@ def test_nstep_returns_match_drqv2_and_termination_vs_truncation():
     assert 5 not in starts and 15 not in starts and 18 not in starts  # last n-1 steps; the 1-step episode
 
 
+def numpy_transitions(buf, times):
+    """The transitions of a ring as the host ring built them with numpy (np.unpackbits, float32 sums):
+    the reference the ring's tensor code (on any device) is held to."""
+    times, cap = np.asarray(times, np.int64), buf.capacity
+    first, rewards, terminal = (getattr(buf, a).cpu().numpy() for a in ("first", "rewards", "terminal"))
+    frames, masks, actions = (getattr(buf, a).cpu().numpy() for a in ("frames", "masks", "actions"))
+
+    def stacked(t):
+        idx = [t]
+        for _ in range(buf.stack - 1):
+            idx.append(np.where(first[idx[-1] % cap], idx[-1], idx[-1] - 1))
+        idx = np.stack(idx[::-1], axis=1) % cap
+        bits = np.unpackbits(masks[idx], axis=-1)[..., :84 * 84]
+        return frames[idx].reshape(len(t), -1, 84, 84), bits.reshape(len(t), buf.stack, 84, 84)
+    ret, gamma = np.zeros(len(times), np.float32), np.float32(1.0)
+    for k in range(1, buf.nstep + 1):
+        ret += gamma * rewards[(times + k) % cap]
+        gamma *= np.float32(buf.discount)
+    discount = np.where(terminal[(times + buf.nstep) % cap], 0.0, gamma).astype(np.float32)
+    return sear.Batch(*stacked(times), actions[(times + 1) % cap], ret[:, None], discount[:, None],
+                      *stacked(times + buf.nstep))
+
+
+def test_the_rings_batches_equal_a_numpy_ring_for_the_same_draws(device):
+    """The ring keeps its slots as tensors on the run's device (the GPU's when it fits) and builds stacks,
+    n-step returns and unpacked masks there: for the same draws its batches equal, value for value, what
+    the host ring computed with numpy (wrapped ring, terminations, random masks and rewards)."""
+    rng = np.random.default_rng(3)
+    buf = sear.ReplayBuffer(57, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.97, device=device)
+    obs = lambda: {"pixels": rng.integers(0, 256, (9, 84, 84), dtype=np.uint8),  # noqa: E731
+                   "mask": rng.integers(0, 2, (3, 84, 84), dtype=np.uint8)}
+    for episode in range(9):
+        buf.add_first(obs())
+        for k in range(int(rng.integers(4, 12))):
+            buf.add(rng.uniform(-1, 1, 2).astype(np.float32), rng.normal(), bool(rng.random() < 0.1), obs())
+    assert buf.t > buf.capacity and buf.frames.device.type == device.type
+    times = buf.draw_starts(64, np.random.default_rng(0), max(0, buf.t - buf.capacity))
+    for name, got, want in zip(sear.Batch._fields, buf.transitions(times), numpy_transitions(buf, times)):
+        assert np.array_equal(got.cpu().numpy(), want), name
+
+
 def test_stacks_never_cross_episodes_and_repeat_first_frame():
     episodes = [([1.0] * 4, False), ([1.0] * 1, True), ([1.0] * 6, False)]
     buf = sear.ReplayBuffer(100, (3, 84, 84), 2, frame_stack=3, nstep=1, discount=0.99)
     log = fill(buf, episodes)
     l = np.arange(len(log))
-    pixels, masks = buf._obs(l)
+    pixels, masks = (x.numpy() for x in buf.stacked(torch.as_tensor(l)))
     for i in l:
         times = pixels[i, 0::3, 0, 0].astype(int)  # red channel = time of each stacked frame
         eps = pixels[i, 1::3, 0, 0].astype(int)
@@ -297,7 +343,7 @@ def test_sampling_only_valid_and_ring_never_serves_overwritten_frames():
     oldest = len(log) - 25
     rng = np.random.default_rng(1)
     for _ in range(20):
-        obs, *_ = buf.sample(16, rng)
+        obs, *_ = numpy(buf.sample(16, rng))
         times = obs[:, 0::3, 0, 0].astype(int)
         assert (times >= oldest % 256).all()
 
@@ -355,7 +401,7 @@ def test_a_wrapped_ring_draws_only_episodes_it_holds_whole():
             t += 1
             buf.add(np.zeros(2, np.float32), 1.0, False, make_obs(t, episode))
             if buf.can_sample():
-                b = buf.sample(32, rng)
+                b = numpy(buf.sample(32, rng))
                 ep = b.obs[:, 1, 0, 0].astype(int)
                 for x in (b.obs, b.next_obs):
                     assert (x[:, 1::3, 0, 0] == ep[:, None]).all()  # one episode
@@ -383,7 +429,7 @@ def test_a_saved_ring_loads_to_the_same_draws(tmp_path, mid_episode):
         for _ in range(2):  # now, and after an episode more
             assert a.can_sample() == b.can_sample()
             x, y = a.sample(64, np.random.default_rng(1)), b.sample(64, np.random.default_rng(1))
-            assert all(np.array_equal(u, v) for u, v in zip(x, y))
+            assert all(torch.equal(u, v) for u, v in zip(x, y))
             for buf in (a, b):
                 fill(buf, [([1.0] * 7, True)])
                 buf.add_first(make_obs(buf.t, 98))
@@ -427,10 +473,10 @@ def test_samples_and_their_frequencies_equal_the_official_drqv2_replay(tmp_path)
     buffer = official.ReplayBuffer(tmp_path, 10 ** 6, 1, 3, 0.99, fetch_every=10 ** 9, save_snapshot=True)
     random.seed(0), np.random.seed(0)
     samples = [buffer._sample() for _ in range(40_000)]
-    firsts = np.flatnonzero(ours.first[:ours.t])
+    firsts = np.flatnonzero(ours.first[:ours.t].numpy())
     keys = [(int(o[0, 0, 0]), int(o[1, 0, 0])) for o, *_ in samples]  # (episode, start) of each official sample
     starts = np.array([firsts[e] + k for e, k in keys])
-    batch = ours.transitions(starts)
+    batch = numpy(ours.transitions(starts))
     assert np.array_equal(batch.reward[:, 0], np.array([s[2][0] for s in samples]))
     assert np.array_equal(batch.discount[:, 0], np.array([s[3][0] for s in samples]))
     assert np.array_equal(batch.action, np.array([s[1] for s in samples]))
@@ -540,7 +586,7 @@ def test_prefetcher_delivers_the_batches_direct_sampling_would(device):
     assert not pre.thread.is_alive()
     for d, f in zip(direct, fetched):
         assert all(y.device.type == device.type for y in f)  # cuda:0 where the fixture says cuda
-        assert all(np.array_equal(x, y.cpu().numpy()) for x, y in zip(d, f))
+        assert all(torch.equal(x.to(y.device), y) for x, y in zip(d, f))
 
 
 def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
@@ -549,7 +595,7 @@ def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
     sampling takes any episode still whole in the ring."""
     buf = sear.ReplayBuffer(30, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
     fill(buf, [([0.5] * 9, False)] * 8)  # 80 slots into 30: episodes at 0, 10, ..., 70 (running)
-    direct = buf.sample(256, np.random.default_rng(0)).obs[:, -3, 0, 0].astype(int)  # 50 and 60 are whole
+    direct = buf.sample(256, np.random.default_rng(0)).obs[:, -3, 0, 0].numpy().astype(int)  # 50 and 60 are whole
     pre = experiment.Prefetcher(buf, 64, np.random.default_rng(0), torch.device("cpu"), margin=7)
     fetched = [pre.next() for _ in range(5)]
     pre.close()
@@ -569,10 +615,10 @@ def test_prefetcher_waits_while_the_margin_leaves_no_episode_and_the_loop_waits_
         if time == 34:  # the oldest slot holds time 15: episode 20 is whole, but starts in the margin
             assert buf.can_sample()
             pre = experiment.Prefetcher(buf, 8, np.random.default_rng(0), torch.device("cpu"), margin=7)
-            assert pre.sample() is None and not buf.can_sample()  # 20 < 15 + 7
+            assert pre.sample() is None and not pre.can_sample()  # 20 < 15 + 7
         buf.add(np.zeros(2, np.float32), 0.5, False, make_obs(time, 3))
     buf.add_first(make_obs(40, 4))  # episode 30-39 ends: 30 >= 41 - 19 + 7
-    assert buf.can_sample() and set(pre.next().obs[:, -3, 0, 0].numpy().astype(int)) <= set(range(30, 37))
+    assert pre.can_sample() and set(pre.next().obs[:, -3, 0, 0].numpy().astype(int)) <= set(range(30, 37))
     pre.close()
 
 
