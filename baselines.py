@@ -131,9 +131,11 @@ class CURLAux(AuxLoss):
         self.opt = sear.Adam([{"params": query.parameters(), "lr": 2 * lr}, {"params": [self.W]}], lr=lr)
 
     def after_update(self, obs):  # curl_sac.py: the key's EMA every 2nd update, then update_cpc (anchor, positive)
-        with torch.no_grad():  # the EMA's weight is tau on even updates, 0 (the key unchanged) on odd ones
-            torch._foreach_lerp_(list(self.key.parameters()), list(self.query[0].parameters()),
-                                 self.tau * (self.updates % 2 == 0))
+        with torch.no_grad():  # key += w (query - key), w = tau on even updates, 0 (the key unchanged) on odd ones
+            key = list(self.key.parameters())
+            step = torch._foreach_sub(list(self.query[0].parameters()), key)
+            torch._foreach_mul_(step, self.tau * (self.updates % 2 == 0))  # a tensor factor: no host read
+            torch._foreach_add_(key, step)
             self.updates += 1
         logits = self.query[0](random_shift(obs)) @ (self.W @ self.key(random_shift(obs)).T)
         loss = F.cross_entropy(logits - logits.max(1, keepdim=True).values, torch.arange(len(obs), device=obs.device))

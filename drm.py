@@ -29,9 +29,9 @@ import torch.nn as nn
 import sear
 from sear import arg
 
-# What an update adds to train.csv: the actor's dormant ratio, the exploration std and the target's
-# lambda of the update, V's expectile loss, and the factor of a perturbation (empty in episodes without).
-METRICS = ("dormant_ratio", "expl_std", "drm_lambda", "value_loss", "perturb_factor")
+# What an update adds to train.csv: the actor's dormant ratio and the target's lambda of the update, V's
+# expectile loss, and the factor of a perturbation (empty in episodes without); every agent logs expl_std.
+METRICS = ("dormant_ratio", "drm_lambda", "value_loss", "perturb_factor")
 
 
 @dataclass
@@ -171,13 +171,13 @@ class DrMAgent(sear.Agent):
             q = torch.min(*self.critic(latent, action))
         value_loss = expectile_loss(self.value(latent) - q, cfg.drm_expectile)
         self.value_opt.step(torch.autograd.grad(value_loss, self.value_opt.params))
-        return {"dormant_ratio": self.ratio.clone(), "expl_std": self.std(step), "drm_lambda": self.lam,
+        return {"dormant_ratio": self.ratio.clone(), "drm_lambda": self.lam,
                 "value_loss": value_loss.detach()}
 
-    def next_value(self, next_latent, step):
+    def next_value(self, next_latent, std):
         """The critic's bootstrap value: lambda x V(s') + (1 - lambda) x min(Q1', Q2')."""
         lam = self.lam
-        return lam * self.value(next_latent) + (1 - lam) * super().next_value(next_latent, step)
+        return lam * self.value(next_latent) + (1 - lam) * super().next_value(next_latent, std)
 
     def perturb_factor(self) -> torch.Tensor:
         """How much of each Linear layer a perturbation keeps: clip(1 - rate x ratio, min, max)."""

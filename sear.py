@@ -151,7 +151,8 @@ class TruncatedNormal(torch.distributions.Normal):
             noise = noise.clamp(-clip, clip)
         x = self.loc + noise
         clamped = x.clamp(-1 + self.eps, 1 - self.eps)
-        return x - x.detach() + clamped.detach()
+        # Where no gradient flows, the straight-through terms add 0: the clamped sample, exactly.
+        return x - x.detach() + clamped.detach() if torch.is_grad_enabled() else clamped
 
 
 def trunk(repr_dim, feature_dim):
@@ -173,7 +174,8 @@ class Actor(nn.Module):
 
     def forward(self, latent, std):
         mu = torch.tanh(self.policy(self.trunk(latent)))
-        return TruncatedNormal(mu, torch.ones_like(mu) * std)  # std: a float, or a 0-d tensor
+        # std: a float (acting), or the update's 0-d float64 tensor, rounded to float32 as a float would be
+        return TruncatedNormal(mu, torch.full_like(mu, std) if isinstance(std, float) else std.float().expand_as(mu))
 
 
 class Critic(nn.Module):
@@ -196,19 +198,20 @@ class Critic(nn.Module):
 # ================================================================================================
 def random_shift(x: torch.Tensor, pad: int = 4, shift: torch.Tensor | None = None):
     """DrQ's random shift: replicate-pad by `pad`, then crop back with a per-sample integer shift,
-    done as a bilinear grid sample. Integer shifts land on pixel centres, so a 0/1 mask stays 0/1.
-    SEAR shifts the image stack and its mask stack together by concatenating them along channels:
-    the same shift for both is what makes the mask a label of the image the encoder sees."""
+    done as a bilinear grid sample (DrQ-v2's RandomShiftsAug, its arithmetic). Integer shifts land on
+    pixel centres (to float32 rounding), so a 0/1 mask stays 0/1. SEAR shifts image and mask stack together by
+    concatenating them along channels: the same shift for both is what makes the mask a label of the
+    image the encoder sees."""
     n, c, h, w = x.shape
     assert h == w
     padded = F.pad(x, (pad,) * 4, mode="replicate")
     eps = 1.0 / (h + 2 * pad)
     arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device, dtype=x.dtype)[:h]
-    arange = arange.unsqueeze(0).repeat(h, 1).unsqueeze(2)
-    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0).repeat(n, 1, 1, 1)
+    arange = arange.unsqueeze(0).expand(h, h).unsqueeze(2)
+    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0)  # broadcast over the batch
     if shift is None:
-        shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device)
-    grid = base_grid + shift.to(x.dtype) * 2.0 / (h + 2 * pad)
+        shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device, dtype=x.dtype)
+    grid = base_grid + shift.to(x.dtype) * (2.0 / (h + 2 * pad))
     return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)
 
 
@@ -244,11 +247,10 @@ def summed_bce(logits, target):
 
 
 class AuxLoss(nn.Module):
-    """The seam. An auxiliary loss sees the latent of the augmented observation (which also feeds
-    the critic) and the augmented image and mask (same shift); baselines that need more take it as
-    keywords (`encoder`, the un-augmented `obs`). It returns its weighted contribution to Eq. 6 and
-    its unweighted terms for the logs; its parameters join the encoder's and critic's optimiser (CURL
-    steps its own, in after_update). METHODS builds it with build(cfg, encoder, critic)."""
+    """The seam: sees the latent of the augmented observation (which the critic reads too) and the
+    augmented image and mask (same shift; more by keyword: `encoder`, the un-augmented `obs`); returns its
+    weighted term of Eq. 6 and its unweighted terms for the logs. Its parameters join the encoder's and
+    critic's optimiser (CURL steps its own, in after_update). METHODS builds it: build(cfg, encoder, critic)."""
     metric_names: tuple[str, ...] = ()
     decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
 
@@ -345,7 +347,7 @@ def actor_metrics(actor_loss, mu) -> dict:
     """The failure of short DDPG runs, made visible: actor_saturated is the share of mean-action
     entries where float32's tanh is exactly +-1 (1 - tanh^2 = 0: no gradient brings them back),
     action_spread the std of the mean action over the batch (0: the same action in every state)."""
-    return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).float().mean(),
+    return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).mean(dtype=torch.float32),
             "action_spread": mu.std(0, correction=0).mean()}
 
 
@@ -401,9 +403,7 @@ class Adam(torch.optim.Adam):
             denom = torch._foreach_sqrt(v)
             torch._foreach_div_(denom, root)
             torch._foreach_add_(denom, group["eps"])
-            update = torch._foreach_mul(m, neg_step)
-            torch._foreach_div_(update, denom)
-            torch._foreach_add_(params, update)
+            torch._foreach_addcdiv_(params, torch._foreach_mul(m, neg_step), denom)
 
 
 class Agent:
@@ -415,10 +415,9 @@ class Agent:
         self.cfg, self.device = cfg, device
         self.method = METHODS[cfg.method]
         in_channels = (4 if self.method.mask_input else 3) * cfg.frame_stack
-        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs. They use the NHWC
-        # ("channels_last") layout, which oneDNN's and cuDNN's fastest kernels expect, and under
-        # --precision bf16 only they run in bf16: a TD target rounded to bf16's 8-bit mantissa would
-        # be off by up to 0.5 at Q = 100, so actor, critic and every loss stay in fp32.
+        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs: NHWC ("channels_last"), the
+        # layout of oneDNN's and cuDNN's fastest kernels, and under --precision bf16 only they run in bf16:
+        # a TD target in bf16 would be off by up to 0.5 at Q = 100, so actor, critic and losses stay fp32.
         nhwc = dict(device=device, memory_format=torch.channels_last)
         if self.method.encoder == "pooled":
             self.encoder = PooledEncoder(in_channels, cfg.latent_dim).to(**nhwc)
@@ -436,11 +435,10 @@ class Agent:
             model_params += [p for p in self.aux.parameters() if p.requires_grad]
         self.model_opt = Adam(model_params, lr=cfg.lr)
         self.actor_opt = Adam(self.actor.parameters(), lr=cfg.lr)
-        self.metric_names = (("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread")
+        self.metric_names = (("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread", "expl_std")
                              + (self.aux.metric_names if self.aux else ()))
 
-    def std(self, step):
-        """The exploration std at this agent step: DrQ-v2's linear schedule."""
+    def std(self, step):  # the exploration std at this agent step: DrQ-v2's linear schedule
         return linear_std(self.cfg, step)
 
     def conv_precision(self):
@@ -476,19 +474,20 @@ class Agent:
                 action.uniform_(-1.0, 1.0)
         return action.squeeze(0).cpu().numpy().astype(np.float32)
 
-    def next_value(self, next_latent, step):
+    def next_value(self, next_latent, std):
         """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target critic at
-        the actor's noisy next action."""
-        next_action = self.actor(next_latent, self.std(step)).sample(clip=self.cfg.std_clip)
+        the actor's next action with exploration noise of this `std`."""
+        next_action = self.actor(next_latent, std).sample(clip=self.cfg.std_clip)
         return torch.min(*self.critic_target(next_latent, next_action))
 
     def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step):
         """Eq. 6: the critic's TD loss plus the auxiliary loss (c1 * recon + c2 * mask for SEAR) on
         `latent`, the encoding of the augmented observation obs_aug (mask_aug: its masks, same shift).
-        Returns the loss and the terms for the logs."""
+        Returns the loss and the terms for the logs, the update's exploration std (expl_std) among them."""
+        std = self.std(step)
         with torch.no_grad():
             next_latent = self.encode(random_shift(batch.next_obs))
-            target_q = batch.reward + batch.discount * self.next_value(next_latent, step)
+            target_q = batch.reward + batch.discount * self.next_value(next_latent, std)
         q1, q2 = self.critic(latent, batch.action)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         loss, metrics = critic_loss, {}
@@ -496,11 +495,12 @@ class Agent:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
                 aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
             loss = loss + aux_loss
-        return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach()}
+        return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach(), "expl_std": std}
 
     def update_critic(self, batch: Batch, step):
         """One joint step on encoder, critic and decoders (Alg. 1)."""
-        obs_aug, mask_aug = shift_together(batch.obs, batch.mask)
+        # the same draws either way: one shift per sample
+        obs_aug, mask_aug = (random_shift(batch.obs), None) if batch.mask is None else shift_together(batch.obs, batch.mask)
         latent = self.encode(obs_aug)
         loss, metrics = self.joint_loss(latent, obs_aug, mask_aug, batch, step)
         # materialize_grads: a parameter Eq. 6 does not reach (CURL's W, which CURL steps itself) gets a
@@ -508,33 +508,34 @@ class Agent:
         self.model_opt.step(torch.autograd.grad(loss, self.model_opt.params, materialize_grads=True))
         return latent.detach(), metrics
 
-    def actor_loss(self, latent, step):
+    def actor_loss(self, latent, std):
         """DDPG's loss, -min(Q1, Q2) of the actor's noisy action; and the mean action, for the logs."""
-        dist = self.actor(latent, self.std(step))
+        dist = self.actor(latent, std)
         return -torch.min(*self.critic(latent, dist.sample(clip=self.cfg.std_clip))).mean(), dist.mean.detach()
 
-    def update_actor(self, latent, step):
+    def update_actor(self, latent, std):
         """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
         loss does not train the encoder; nor the critic, whose gradient is not computed at all."""
-        actor_loss, mu = self.actor_loss(latent, step)
+        actor_loss, mu = self.actor_loss(latent, std)
         self.actor_opt.step(torch.autograd.grad(actor_loss, self.actor_opt.params))
         return actor_metrics(actor_loss, mu)
 
     def update(self, batch: Batch, step: int) -> dict:
         """One update on a replay batch (arrays or tensors, on any device) at agent step `step`.
         Returns its metrics as 0-d tensors on the device: read them when a log line is written."""
-        batch = Batch._make(torch.as_tensor(x).to(self.device, non_blocking=True) for x in batch)
+        batch = Batch._make(torch.as_tensor(x, device=self.device) for x in batch)  # a ring's: there already
+        if not self.method.uses_mask:  # neither shifted nor read
+            batch = batch._replace(mask=None, next_mask=None)
         return self.learn(batch, torch.full((), step, dtype=torch.float64, device=self.device))
 
     def learn(self, batch: Batch, step: torch.Tensor) -> dict:
-        """The update itself, tensors in and out (the part --compile takes whole): the critic's and the
-        auxiliary loss's joint step, the actor's step, the target critic's Polyak averaging, and a
-        method's own step (CURL's). `step`: the agent step as a float64 0-d tensor."""
-        batch = Batch._make(x.float() for x in batch)
+        """The update, tensors in and out (what --compile takes whole): the joint step of Eq. 6, the actor's,
+        Polyak averaging, a method's own step (CURL's). `step`: the agent step, a float64 0-d tensor."""
+        batch = Batch._make(None if x is None else x.float() for x in batch)
         batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
                                next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
         latent, metrics = self.update_critic(batch, step)
-        metrics.update(self.update_actor(latent, step))
+        metrics.update(self.update_actor(latent, metrics["expl_std"]))  # the std the critic's target used
         with torch.no_grad():  # Polyak averaging of the target critic
             torch._foreach_lerp_(list(self.critic_target.parameters()), list(self.critic.parameters()),
                                  self.cfg.critic_tau)

@@ -6,7 +6,6 @@ no machine changes them but through the optimiser's path (below).
     python benchmarks/update_counts.py                        # every method, the paper's sizes, batch 8
     python benchmarks/update_counts.py --methods drq sear --top 25
     python benchmarks/update_counts.py --check                # exit 1 when a target below is missed
-    python benchmarks/update_counts.py --adam foreach         # Adam's foreach path, which CUDA takes by default
 
 What is counted, per update (`count_update`), with a TorchDispatchMode, so below autograd: the forward
 ops, the backward ops autograd runs, the optimisers' ops, everything dispatched from the call's thread
@@ -33,12 +32,10 @@ or from autograd's threads while `agent.update(batch, step)` runs:
              (about 43 MB at batch 256), 0 once the replay hands it tensors on the device.
 
 The counts do not depend on the batch size or the networks' widths (the same ops run on larger
-tensors); they depend on the method, its flags, and the optimiser's path: torch's Adam takes its
-per-parameter loop (about 9 ops per parameter) on the CPU and its `foreach` path (a few ops per step,
-and still 2 host reads per parameter) on CUDA unless told which; `--adam foreach` counts the latter on
-the CPU, `--adam fused` torch's fused kernel (its step counts on the device). CURL steps its key encoder
-every second update: the CLI counts two consecutive updates and shows the larger. A compiled update's
-fused kernels are not aten ops: these counts are of the eager update.
+tensors); they depend on the method and its flags (sear.Adam steps all of an optimiser's parameters with
+one foreach op per term). CURL steps its key encoder every second update: the CLI counts two consecutive
+updates and shows the larger. A compiled update's fused kernels are not aten ops: these counts are of
+the eager update.
 """
 import argparse
 import contextlib
@@ -57,15 +54,10 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import bench_agent  # noqa: E402
 import cli  # noqa: E402
-import drm  # noqa: E402
 import sear  # noqa: E402
+import train  # noqa: E402
 
-try:
-    import baselines  # noqa: F401  # registers the baseline methods into sear.METHODS
-except ImportError:
-    pass
-
-# What the update rewrite is to reach (at most this many ops per update; syncs inside any update).
+# The targets: at most this many ops per update, and host syncs inside any update.
 OPS_TARGET = {"drq": 250, "sear": 400}
 SYNCS_TARGET = 0
 
@@ -227,36 +219,23 @@ def count_update(agent, batch, step, warmup: int = 1) -> Counts:
 
 # --- agents and batches ---------------------------------------------------------------------------
 def make_agent(method_label, cfg_overrides, device):
-    """An agent of a method label of sear.METHODS, or METHOD+drm for it with DrM: built by sear.Agent
-    from Config(drm=True) where DrM lives inside it, by drm.DrMAgent where DrM is its own agent class."""
+    """An agent of a method label of sear.METHODS, or METHOD+drm for it with DrM (drm.DrMAgent), as
+    train.py builds it."""
     method, drm_flags = cli.split_method_label(method_label)
-    cfg = sear.Config(method=method, **cfg_overrides)
-    device = torch.device(device)
-    if not drm_flags:
-        return sear.Agent(cfg, 6, device)
-    if any(f.name == "drm" for f in dataclasses.fields(cfg)):
-        cfg = dataclasses.replace(cfg, drm=True)
-    return drm.DrMAgent(cfg, 6, device) if hasattr(drm, "DrMAgent") else sear.Agent(cfg, 6, device)
+    cfg = train.Config(method=method, drm=bool(drm_flags), **cfg_overrides)
+    return train.make_agent(cfg, 6, torch.device(device))
 
 
 def default_methods() -> list:
     return [*sear.METHODS, "drq" + cli.DRM_SUFFIX, "sear" + cli.DRM_SUFFIX]
 
 
-def set_adam_path(agent, path: str) -> None:
-    """The agent's optimisers on torch's `foreach` path (CUDA's default for Adam; the CPU's only when
-    asked) or its `fused` one (one kernel per step, the step counts on the device); `built`: as built."""
-    for opt in optimizers(agent) if path != "built" else ():
-        for group in opt.param_groups:
-            group["foreach"], group["fused"] = path == "foreach", path == "fused"
-
-
-def count_method(label, overrides, batch_size, device="cpu", adam="built") -> Counts:
-    """The heavier of two consecutive updates of a fresh agent (CURL's key EMA runs every second one)."""
+def count_method(label, overrides, batch_size, device="cpu") -> Counts:
+    """The heavier of two consecutive updates of a fresh agent (CURL's key EMA runs every second one), on
+    a batch already on the agent's device, as the replay there hands it."""
     torch.manual_seed(0)
     agent = make_agent(label, overrides, device)
-    set_adam_path(agent, adam)
-    batch = sear.Batch(*bench_agent.fake_batch(batch_size))  # numpy arrays, as the replay hands them today
+    batch = bench_agent.device_batch(bench_agent.fake_batch(batch_size), device)
     first = count_update(agent, batch, 5_000)
     second = count_update(agent, batch, 5_000, warmup=0)
     return max(first, second, key=lambda c: (c.ops, c.syncs))
@@ -281,9 +260,6 @@ def main(argv=None) -> int:
     p.add_argument("--top", type=int, default=15, help="ops listed per method, most dispatched first (0: none)")
     p.add_argument("--check", action="store_true", help="exit 1 when a method misses a target "
                    f"(ops per update: {OPS_TARGET}; host syncs: {SYNCS_TARGET})")
-    p.add_argument("--adam", choices=["built", "foreach", "fused"], default="built",
-                   help="the optimisers as the agent builds them, or set to torch's foreach path (what Adam "
-                        "takes by default on CUDA) or its fused kernel first")
     p.add_argument("--device", default="cpu", help="the agents' device (cuda: the counts of a GPU run)")
     p.add_argument("--latent-dim", type=int, help="default: the paper's (counts do not depend on the widths)")
     p.add_argument("--hidden-dim", type=int)
@@ -295,23 +271,23 @@ def main(argv=None) -> int:
     overrides = {"batch_size": args.batch_size, "action_repeat": 2,
                  **{k: getattr(args, k) for k in ("latent_dim", "hidden_dim", "feature_dim") if getattr(args, k)}}
     sizes = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in overrides.items() if k != "action_repeat")
-    adam = f"{args.adam} Adam" if args.adam != "built" else f"Adam as built (its default path on {args.device})"
-    counts = {label: count_method(label, overrides, args.batch_size, args.device, args.adam)
-              for label in args.methods}
+    counts = {label: count_method(label, overrides, args.batch_size, args.device) for label in args.methods}
     for label, c in counts.items() if args.top else ():
         print(f"### {label}: the {args.top} most dispatched of {len(c.names)} ops\n\n| op | count |\n|---|---|")
         for name, n in c.names.most_common(args.top):
             print(f"| {name} | {n} |")
         print()
     # The table last, where a log's tail shows it.
-    print(f"## One update's ops, host syncs and host->device bytes on {args.device} ({sizes}; {adam})\n")
-    print("| method | ops | host syncs | H2D bytes | H2D at batch 256 | lerp_ | Adam step reads (host) | the syncs |")
+    print(f"## One update's ops, host syncs and host->device bytes on {args.device} ({sizes}; the batch on "
+          f"the device, as the replay there hands it)\n")
+    print("| method | ops | host syncs | H2D bytes | H2D at batch 256 | lerp | Adam step reads (host) | the syncs |")
     print("|---|---|---|---|---|---|---|---|")
     failed = []
     for label, c in counts.items():
         syncs = ", ".join(f"{k} x{n}" for k, n in c.sync_names.most_common())
         at_256 = c.h2d_bytes * 256 / args.batch_size  # the batch's arrays: bytes in proportion to its size
-        print(f"| {label} | {c.ops} | {c.syncs} | {c.h2d_bytes:,} | {at_256 / 1e6:.1f} MB | {c.names['lerp_']} | "
+        lerps = c.names["lerp_"] + c.names["_foreach_lerp_"]  # one per parameter, or one per list
+        print(f"| {label} | {c.ops} | {c.syncs} | {c.h2d_bytes:,} | {at_256 / 1e6:.1f} MB | {lerps} | "
               f"{c.host_reads} | {syncs} |")
         failed += misses(label, c)
     print(f"\ntargets: ops per update {OPS_TARGET}, host syncs {SYNCS_TARGET}: "

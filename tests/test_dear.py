@@ -99,7 +99,7 @@ def test_the_actor_loss_never_reaches_the_encoder(device):
     latent, _ = agent.update_critic(batch, step=10**5)
     encoder = copy.deepcopy(agent.encoder.state_dict())
     grads = captured_grads(agent.actor_opt)
-    agent.update_actor(latent, step=10**5)
+    agent.update_actor(latent, agent.std(10**5))
     assert latent.grad_fn is None and all(torch.equal(v, agent.encoder.state_dict()[k]) for k, v in encoder.items())
     assert any(g.any() for g in grads[0])
 
