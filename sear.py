@@ -26,8 +26,7 @@ import torch.nn.functional as F
 # ================================================================================================
 # 1. Config
 # ================================================================================================
-def arg(default, doc, choices=None):
-    """A config field with its one-line doc (train.py's --help) and, for a fixed set of values, the choices."""
+def arg(default, doc, choices=None):  # a config field, its one-line doc (--help), its values if a fixed set
     return field(default=default, metadata={"doc": doc, "choices": choices})
 
 
@@ -287,11 +286,8 @@ class SearAux(AuxLoss):
     def build(cls, cfg, encoder, critic):
         return cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
 
-    def decoder_inputs(self, latent):
-        if not self.split:
-            return latent, latent
-        z, z_r = latent.chunk(2, dim=1)
-        return z, z_r
+    def decoder_inputs(self, latent):  # (z, z_R): the two halves, or the whole latent twice without the split
+        return latent.chunk(2, dim=1) if self.split else (latent, latent)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
         z, z_r = self.decoder_inputs(latent)
@@ -373,11 +369,9 @@ class Adam(torch.optim.Adam):
 
     def load_state_dict(self, state_dict):
         super().load_state_dict(state_dict)
+        self.reset([p for p in self.params if p not in self.state])  # saved before its first step
         for p in self.params:  # torch.optim.Adam's counts are float32 on the CPU: ours on the parameter's device
-            if p in self.state:
-                self.state[p]["step"] = self.state[p]["step"].to(p.device, torch.float64)
-            else:  # saved before its first step
-                self.reset([p])
+            self.state[p]["step"] = self.state[p]["step"].to(p.device, torch.float64)
 
     @torch.no_grad()
     def step(self, grads):
@@ -497,12 +491,16 @@ class Agent:
             loss = loss + aux_loss
         return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach(), "expl_std": std}
 
-    def update_critic(self, batch: Batch, step):
-        """One joint step on encoder, critic and decoders (Alg. 1)."""
-        # the same draws either way: one shift per sample
+    def critic_objective(self, batch: Batch, step):
+        """Eq. 6 on a batch: the loss, its terms for the logs, the latent of the augmented observation."""
+        # one shift per sample: the same draws with or without the masks
         obs_aug, mask_aug = (random_shift(batch.obs), None) if batch.mask is None else shift_together(batch.obs, batch.mask)
         latent = self.encode(obs_aug)
-        loss, metrics = self.joint_loss(latent, obs_aug, mask_aug, batch, step)
+        return (*self.joint_loss(latent, obs_aug, mask_aug, batch, step), latent)
+
+    def update_critic(self, batch: Batch, step):
+        """One joint step on encoder, critic and decoders (Alg. 1)."""
+        loss, metrics, latent = self.critic_objective(batch, step)
         # materialize_grads: a parameter Eq. 6 does not reach (CURL's W, which CURL steps itself) gets a
         # zero gradient, and Adam's step of a parameter that never had a gradient is exactly 0.
         self.model_opt.step(torch.autograd.grad(loss, self.model_opt.params, materialize_grads=True))

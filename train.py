@@ -13,6 +13,7 @@ from __future__ import annotations
 import random
 import sys
 import time
+import types
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -23,6 +24,7 @@ import baselines
 import cli
 import drm
 import experiment
+import group
 import sear
 from sear import Agent, ReplayBuffer, arg
 
@@ -186,8 +188,13 @@ def evaluate_snapshot(cfg: Config, run: cli.RunConfig, snapshot: dict) -> None:
 
 
 def main(argv=None) -> int:
-    """`python sear.py --flag value ...` (or train.py): 0 when done; bad input (2), Ctrl-C (130) and SIGTERM (143) end
-    in one line."""
+    """`python sear.py --flag value ...` (or train.py): 0 when done; bad input (2), Ctrl-C (130) and SIGTERM
+    (143) end in one line. `--seeds 1-16` (or --resume of a group's folder) trains several seeds at once
+    (group.py)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if group.wanted(argv):
+        parts = types.SimpleNamespace(make_agent=make_agent, Episode=Episode, eval_due=eval_due)
+        return group.main(argv, Config, METHODS, parts)
     return cli.main(argv, Config, METHODS, train, evaluate_snapshot)
 
 
