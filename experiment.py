@@ -219,6 +219,7 @@ class EvalWatch:
         self.decodes = agent.aux.decodes if agent.aux is not None else ()
         self.true_mask = agent.method.uses_mask  # mask-free methods' envs skip the segmentation render
         self.pending, self.values, self.episode, self.seen, self.video = [], {}, -1, 0, None
+        self.label_strip = None  # the panels' names, drawn when the video starts
 
     def __getattr__(self, name):  # everything else (spaces, close, ...) is the env's
         return getattr(self.env, name)
@@ -764,7 +765,10 @@ class Progress:
     left at their measured length. Until it has both (MEASURE_UPDATES updates over MEASURE_SECONDS,
     one evaluation or part of one) it says "measuring". A resumed run starts from the speeds its
     snapshot kept (state()) until it has measured its own. When the learning speed is first measured
-    one line says what the rest of the run costs on this device (cost())."""
+    one line says what the rest of the run costs on this device (cost()).
+
+    It also keeps the longest training episode (frames, and seconds less the pauses) and the longest
+    evaluation episode: how long a first SIGTERM waits at most (episode_bound(), eval_episode_bound())."""
 
     WIDTH = 120
     WARMUP = 2             # the first updates also build the kernels (oneDNN, cuDNN): not timed
@@ -785,9 +789,34 @@ class Progress:
         self.window_start, self.window_frame = clock(), 0
         self.flags: list[str] = []  # health warnings, shown at the end of every line
         self.cost_said = False
+        # The longest episodes of this process and of the snapshot's (see_episode, see_eval_episode).
+        self.longest = {name: self.saved.get(name) or 0
+                        for name in ("episode_frames", "episode_seconds", "eval_episode_seconds")}
 
     def restart_window(self, frame):
         self.window_start, self.window_frame = self.clock(), frame
+
+    def see_episode(self, frame):
+        """A training episode ended at `frame` (before restart_window): its frames and seconds."""
+        longest = self.longest
+        longest["episode_frames"] = max(longest["episode_frames"], frame - self.window_frame)
+        longest["episode_seconds"] = max(longest["episode_seconds"], self.clock() - self.window_start)
+
+    def see_eval_episode(self, seconds):
+        self.longest["eval_episode_seconds"] = max(self.longest["eval_episode_seconds"], seconds)
+
+    def episode_bound(self) -> float | None:
+        """Seconds a training episode takes at most, as measured: the longest one yet, or the most
+        frames an episode has had at the slowest speed measured, the learning speed's or the episode
+        under way's (the seed phase's episodes, without updates, are much faster)."""
+        speeds = [self.learning_fps() or math.inf, self.fps if self.tick_frame > self.window_frame else math.inf]
+        slowest = min(speeds)
+        frames = self.longest["episode_frames"] / slowest if slowest and math.isfinite(slowest) else 0.0
+        return max(self.longest["episode_seconds"], frames) or None
+
+    def eval_episode_bound(self) -> float | None:
+        """Seconds an evaluation episode takes at most, as measured: the longest one yet."""
+        return self.longest["eval_episode_seconds"] or None
 
     def pause(self, seconds):
         """`seconds` spent off training (an evaluation, a snapshot): not counted in any speed."""
@@ -819,8 +848,8 @@ class Progress:
         return eval_spent / eval_done if eval_done > 0 else self.saved.get("eval_seconds")
 
     def state(self) -> dict:
-        """The speeds a snapshot keeps for the ETA of the next start."""
-        return {"learning_fps": self.learning_fps(), "eval_seconds": self.eval_length()}
+        """The speeds a snapshot keeps for the ETA of the next start, and the longest episodes."""
+        return {"learning_fps": self.learning_fps(), "eval_seconds": self.eval_length(), **self.longest}
 
     def evals_left(self, next_eval):
         """Scheduled evaluations before the end of the budget (the one due now included), plus the
@@ -970,45 +999,25 @@ class Counters:
     mid_episode: bool = False   # an episode has begun and not ended
 
 
-class RunDir:
-    """A run directory and everything written into it: config.json, train.csv, eval.csv (and
-    TensorBoard events), snapshot.pt with buffer.npz beside it (--save-buffer), videos/; and what
-    goes to the screen: the progress line, and on Ctrl-C or SIGTERM or a storage error (as a `with`
-    block) one line that says what was saved. Nothing is created before create(). It owns the
-    directory (RunLock) from before its first write to the end of the `with` block; a first SIGTERM
-    in the block waits for a safe point: create(), or safe_point() at an episode end.
+class RunFiles:
+    """A run directory on disk: config.json, train.csv and eval.csv (and TensorBoard events),
+    snapshot.pt with buffer.npz beside it (--save-buffer), the side files of a resume, run.lock; and
+    what a storage error or a kill leaves there. Nothing is created before create(); the directory
+    is owned (RunLock) from before its first write until release()."""
 
-    The loop (sear.train) decides when to evaluate and to snapshot (between episodes, every
-    --snapshot-minutes); RunDir writes what it is handed, and snapshots on its own only on a Ctrl-C
-    between episodes and after the final evaluation. A snapshot holds the agent, the RNG states, the
-    counters and, beside it, the replay buffer; the next episode's reset seed follows from its number,
-    so a resume (with --save-buffer) does exactly what the uninterrupted run would have done."""
-
-    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
+    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None):
         self.cfg, self.run, self.resumed = cfg, run, snapshot
         self.path = run.resume or None  # a new run's is made by create(): removed if it ends before a snapshot
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
-        self.counters = None  # the loop's, from start()
-        self.pending = []  # the updates' metrics not read from the device yet
-        self.metrics = {}  # the updates' metrics of the episode under way, read
         self.lock = None
+        self.train_log = self.eval_log = self.writer = None  # open_logs(), once the directory is there
 
-    @property
-    def frame(self):
-        return self.counters.step * self.cfg.action_repeat if self.counters else self.snapshot_frame or 0
-
-    # --- the directory ---
     def create(self):
-        """Once the envs are made (every input checked): the start-up warnings, then a new run's
-        directory (env__method__seed__time under --run-root), owned, and its config.json; a resumed
-        run has both."""
-        for message in cli.start_warnings(self.cfg, self.run):
-            cli.warn(message)
-        if self.path is None:
-            self.safe_point()  # stopped while the envs were made: nothing to keep
-            self.path = new_run_dir(self.run.run_root, f"{self.cfg.env}__{cli.method_label(self.cfg)}__{self.cfg.seed}")
-            self.lock = RunLock(self.path)
-            self.write_config(cli.config_dict(self.cfg, self.run))
+        """A new run's directory (env__method__seed__time under --run-root), owned, and its config.json."""
+        cfg = self.cfg
+        self.path = new_run_dir(self.run.run_root, f"{cfg.env}__{cli.method_label(cfg)}__{cfg.seed}")
+        self.lock = RunLock(self.path)
+        self.write_config(cli.config_dict(cfg, self.run))
 
     def own(self):
         """--resume, before anything is written: a second process on this run stops here. A config.json
@@ -1016,56 +1025,42 @@ class RunDir:
         self.lock = RunLock(self.path)
         if not os.path.lexists(os.path.join(self.path, "config.json")):
             self.write_config(self.resumed["config"])
-            print(f"resume: {os.path.join(self.path, 'config.json')} was missing; written again from snapshot.pt")
+            print(f"resume: {os.path.join(self.path, 'config.json')} was missing; written again from "
+                  f"snapshot.pt")
 
     def write_config(self, config: dict):
-        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2), mode="w")
+        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2),
+                         mode="w")
 
-    @staticmethod
-    def safe_point():
-        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops here."""
-        if cli.TERM.pending:
-            raise cli.Terminated
-
-    def start(self, agent, buffer, sample_rng: np.random.Generator) -> Counters:
-        """Say what runs, restore a resumed run (weights, RNGs, buffer, counters) and open the logs.
-        Returns the counters the loop advances; the snapshots save them with agent, buffer and
-        sample_rng."""
-        cfg = self.cfg
-        self.agent, self.buffer, self.sample_rng = agent, buffer, sample_rng
-        print(f"run dir: {self.path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device {agent.device} | "
-              f"action repeat {cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
-              f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
-        if cfg.mask_source != "sim":
-            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the simulator's mask "
-                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
-                     else "is never rendered)"))
-        counters, wall_time = self.restore() if self.resumed else (Counters(), 0.0)
+    def open_logs(self):
         self.train_log = CsvLog(os.path.join(self.path, "train.csv"))
         self.eval_log = CsvLog(os.path.join(self.path, "eval.csv"))
         self.writer = tensorboard_writer(self.path)
-        self.progress = Progress(cfg.frames, self.run.log_every, cfg.eval_every, (self.resumed or {}).get("progress"))
-        self.health = Health(cfg.discount)
-        self.health.see_rewards(buffer.rewards[:len(buffer)].cpu().numpy())
-        self.start_time = time.time() - wall_time
-        self.counters = counters
-        self.check_free_space()
-        self.say_expected_time()
-        self.progress.restart_window(self.frame)
-        return counters
 
-    def check_free_space(self):
-        """Before any compute is spent: a disk that cannot hold the next snapshot.pt is refused (the
-        run's work would be lost at its first snapshot); one that cannot hold what the run writes at
-        its largest (two snapshot.pt while one replaces the other, and with --save-buffer two
-        buffer.npz of the full replay) is warned of. Says the sizes either way."""
-        snapshot, buffer = snapshot_bytes(self.agent), self.cfg.replay_size * self.buffer.bytes_per_transition
-        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in ("snapshot.pt", "buffer.npz"))
+    def write_row(self, log: CsvLog, row: dict, scalars: dict, frame: int):
+        """A row of train.csv or eval.csv, and its scalars as TensorBoard events."""
+        log.write(row)
+        if self.writer:
+            for tag, value in scalars.items():
+                self.writer.add_scalar(tag, value, frame)
+
+    def note(self, tag: str, text: str, frame: int):
+        if self.writer:
+            self.writer.add_text(tag, text, frame)
+
+    def check_free_space(self, snapshot: int, buffer: int):
+        """Before any compute is spent: a disk that cannot hold the next snapshot.pt (`snapshot` bytes)
+        is refused (the run's work would be lost at its first snapshot); one that cannot hold what the
+        run writes at its largest (two snapshot.pt while one replaces the other, and with --save-buffer
+        two buffer.npz of the full replay, `buffer` bytes) is warned of. Says the sizes either way."""
+        names = ("snapshot.pt", "buffer.npz")
+        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in names)
                       if os.path.exists(p))
         free = shutil.disk_usage(self.path).free
         more = 2 * snapshot + (2 * buffer if self.run.save_buffer else 0) - on_disk
-        print(f"disk: snapshot.pt {size(snapshot)}" + (f", buffer.npz up to {size(buffer)}" if self.run.save_buffer
-                                                       else "") + f"; {size(free)} free in {self.path}")
+        print(f"disk: snapshot.pt {size(snapshot)}"
+              + (f", buffer.npz up to {size(buffer)}" if self.run.save_buffer else "")
+              + f"; {size(free)} free in {self.path}")
         if free < snapshot:
             raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run takes "
                                   f"{size(snapshot)}: free some space, or give --run-root on a larger disk")
@@ -1075,22 +1070,258 @@ class RunDir:
                      + (f", two buffer.npz of up to {size(buffer)}" if self.run.save_buffer else "")
                      + "): it will stop on a full disk before its end, its last snapshot standing")
 
-    def say_expected_time(self):
-        p, frame = self.progress, self.frame
+    def save(self, payload: dict, buffer, frame: int):
+        """buffer.npz (with --save-buffer), then snapshot.pt; each write is atomic, and the payload's
+        buffer_t tells a resume whether a kill between the two left a buffer newer than the snapshot."""
+        if self.run.save_buffer:
+            save_buffer(buffer, os.path.join(self.path, "buffer.npz"))
+        save_snapshot(self.path, payload)
+        self.snapshot_frame = frame
+
+    def restore_buffer(self, buffer):
+        """The resumed snapshot's replay buffer, where buffer.npz holds it (else the buffer refills)."""
+        state, path = self.resumed, os.path.join(self.path, "buffer.npz")
+        if not (os.path.exists(path) and state.get("buffer_saved")):
+            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
+        elif saved_buffer_t(path) != state.get("buffer_t", saved_buffer_t(path)):
+            print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
+        else:
+            load_buffer(buffer, path)
+
+    def set_aside_after(self, frame: int, eval_frame: int):
+        """train.csv's rows after `frame` and eval.csv's after `eval_frame` go to side files."""
+        set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
+        set_aside_rows_after(os.path.join(self.path, "eval.csv"), eval_frame)
+
+    def close(self):
+        if self.writer:
+            self.writer.close()
+
+    def release(self):
+        if self.lock is not None:
+            self.lock.release()
+
+    def remove_if_unsaved(self) -> bool:
+        """A new run's directory without a snapshot: removed (True if it is gone)."""
+        if self.run.resume or self.path is None or self.snapshot_frame is not None:
+            return False
+        shutil.rmtree(self.path, ignore_errors=True)  # the lock file goes too; the lock is an open fd
+        return not os.path.exists(self.path)
+
+    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
+        """A storage error's line, ended with what the run dir holds now and how to go on."""
+        if self.path is None:
+            return cli.StorageError(f"{error}; no run directory was made")
+        if self.snapshot_frame is None:
+            return cli.StorageError(f"{error}; {self.path} " + (
+                "had no snapshot yet and was removed (nothing to resume)" if removed
+                else "has no snapshot yet, so there is nothing to resume"))
+        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: fix that, "
+                                f"then python sear.py --resume {self.path}")
+
+    def what_a_kill_leaves(self) -> str:
+        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its watcher
+        thread while the main thread is stuck in a native call): no other cleanup runs."""
+        if self.path is None:
+            return "nothing was saved"
+        if self.snapshot_frame is None:
+            return f"{self.path} " + ("had no snapshot yet and was removed" if self.remove_if_unsaved()
+                                      else "has no snapshot yet, so there is nothing to resume: delete it")
+        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python sear.py "
+                f"--resume {self.path}")
+
+
+class Console:
+    """What a run shows: what runs where and how long it should take, at its start; the progress
+    line (Progress: speed, ETA, what the loop is doing, health warnings) during episodes and
+    evaluations; each evaluation's result and each snapshot; and what a first SIGTERM waits for."""
+
+    def __init__(self, cfg, run: cli.RunConfig, saved: dict | None):
+        self.cfg = cfg
+        self.progress = Progress(cfg.frames, run.log_every, cfg.eval_every, saved)
+        self.evaluating = False  # between start_eval() and end_eval()
+        self.eval_began = self.episode_began = 0.0  # wall clock: the evaluation's start, its episode's
+        self.eval_episodes = self.eval_episode = self.eval_step = 0  # its length, where it is
+
+    def say_run(self, path, agent, buffer):
+        cfg = self.cfg
+        print(f"run dir: {path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device {agent.device} | "
+              f"action repeat {cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} "
+              f"B = {cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
+        if cfg.mask_source != "sim":
+            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the simulator's mask "
+                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
+                     else "is never rendered)"))
+
+    def say_expected_time(self, frame, next_eval):
+        p = self.progress
         if p.learning_fps():  # a resumed run: the speeds its snapshot kept
             print(f"speed when last run: {p.learning_fps():.3g} frames/s with updates"
                   + (f", {duration(p.eval_length())} per evaluation" if p.eval_length() else "")
-                  + f"; ETA {duration(p.eta(frame, self.next_eval()))} until measured again here")
+                  + f"; ETA {duration(p.eta(frame, next_eval))} until measured again here")
         else:
-            print(f"ETA: measuring; the cost of this run is said once its first updates are timed (they start "
-                  f"at frame {max(frame, self.cfg.seed_frames)}"
+            print(f"ETA: measuring; the cost of this run is said once its first updates are timed (they "
+                  f"start at frame {max(frame, self.cfg.seed_frames)}"
                   + (", after the frame-0 evaluation of the untrained policy)" if frame == 0 else ")"))
+
+    def tick(self, frame, next_eval):
+        """After every env step: the speeds, and once they are measured what the run costs here."""
+        self.progress.measure(frame)
+        cost = self.progress.cost(frame, next_eval)
+        if cost:
+            self.progress.say(cost)
+
+    def show_step(self, frame, episode, ep_len, next_eval):
+        self.tick(frame, next_eval)
+        self.progress.update(frame, f"ep {episode} step {ep_len}", self.progress.eta(frame, next_eval))
+
+    def show_episode(self, frame, episode, ep_return, next_eval):
+        """The line of an episode that just ended (after tick()); its length is measured."""
+        p = self.progress
+        p.update(frame, f"ep {episode} return {ep_return:.1f}", p.eta(frame, next_eval), force=True)
+        p.see_episode(frame)
+        p.restart_window(frame)
+
+    def warn(self, kind, message):
+        """A health warning: on stderr, and on the progress line from now on."""
+        self.progress.flags.append(f"warning: {kind}")
+        cli.warn(message)
+
+    def start_eval(self, frame, episodes: int, untrained: str):
+        self.evaluating, self.eval_episodes, self.eval_episode, self.eval_step = True, episodes, 0, 0
+        self.eval_began = self.episode_began = time.time()
+        self.progress.say(f"evaluating at frame {frame} ({episodes} episodes)"
+                          + (f": {untrained}, before any update" if untrained else ""))
+
+    def show_eval(self, frame, episode, t, untrained: str, next_eval):
+        """The progress line during an evaluation: which episode, of which policy at frame 0, and once
+        an episode is done how long the evaluation has left."""
+        now = time.time()
+        if episode != self.eval_episode:  # the one before has ended
+            self.progress.see_eval_episode(now - self.episode_began)
+            self.eval_episode, self.episode_began = episode, now
+        self.eval_step = t
+        done, spent = episode / self.eval_episodes, now - self.eval_began
+        text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
+                + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
+        self.progress.update(frame, text, self.progress.eta(frame, next_eval, done, spent))
+
+    def end_eval(self, frame, episodes: int) -> float:
+        """The evaluation has ended after `episodes`, whole or cut short; off the training-speed clock.
+        Returns its seconds."""
+        now = time.time()
+        if episodes > self.eval_episode:  # its last episode ran to its end
+            self.progress.see_eval_episode(now - self.episode_began)
+        seconds, self.evaluating = now - self.eval_began, False
+        if episodes == self.eval_episodes:
+            self.progress.eval_seconds.append(seconds)
+        else:
+            self.progress.say(f"evaluation at frame {frame} stopped by SIGTERM after {episodes} of "
+                              f"{self.eval_episodes} episodes: no eval.csv row; a resume evaluates again")
+        self.progress.pause(seconds)
+        return seconds
+
+    def say_eval(self, frame, row: dict, scores: dict, seconds: float):
+        self.progress.say(f"eval @ frame {frame}: return {row['return']:.1f}"
+                          + (f", success {row['success']:.2f}" if "success" in row else "")
+                          + "".join(f", {name} {value:.3g}" for name, value in scores.items())
+                          + f" ({seconds:.1f} s)")
+
+    def waits_for(self, frame, mid_episode: bool) -> str:
+        """What a first SIGTERM waits for, and how long at most as measured (cli.TermSignal's line)."""
+        p = self.progress
+        episode = (f"at most one episode: ~{duration(math.ceil(p.episode_bound()))}, measured"
+                   if p.episode_bound() else "at most one episode, not timed yet in this process")
+        if not self.evaluating:
+            return f"the next episode end ({episode}), with a snapshot"
+        if p.eval_episode_bound():
+            bound = f"at most ~{duration(math.ceil(p.eval_episode_bound()))}, measured"
+        else:
+            bound = (f"not timed yet: the first of this process, at step {self.eval_step} after "
+                     f"{duration(time.time() - self.episode_began)}")
+        then = (f", then the end of the training episode under way ({episode})"
+                if mid_episode and frame < self.cfg.frames else "")
+        return (f"the end of this evaluation episode ({bound}){then}, with a snapshot; the evaluation is "
+                f"redone on resume")
+
+
+class RunDir:
+    """The `with` block a run trains in, over its RunFiles (the directory: config.json, the logs,
+    snapshot.pt with buffer.npz beside it, videos/) and its Console (the lines it prints): on Ctrl-C,
+    SIGTERM, a storage error or a value that is not finite, one line that says what was saved.
+    Nothing is created before create(). A first SIGTERM in the block waits for a safe point: create(),
+    or safe_point() between episodes; an evaluation under way ends at its episode end first.
+
+    The loop (train.train) decides when to evaluate and to snapshot (between episodes, every
+    --snapshot-minutes) and moves its Counters; RunDir writes what it is handed, and snapshots on its
+    own only on a Ctrl-C or SIGTERM between episodes and after the final evaluation. A snapshot holds
+    the agent, the RNG states, the counters and, beside it, the replay buffer; the next episode's reset
+    seed follows from its number, so a resume (with --save-buffer) does exactly what the uninterrupted
+    run would have done."""
+
+    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
+        self.cfg, self.run, self.resumed = cfg, run, snapshot
+        self.files = RunFiles(cfg, run, snapshot)
+        self.console = Console(cfg, run, (snapshot or {}).get("progress"))
+        self.health = Health(cfg.discount)
+        self.counters = None  # the loop's, from start()
+        self.agent = self.buffer = self.sample_rng = None  # what a snapshot saves, from start()
+        self.watch = None  # the evaluation under way (start_eval)
+        self.cut = ""  # what a SIGTERM cut short: said when the run stops
+        self.pending = []  # the updates' metrics not read from the device yet
+        self.metrics = {}  # the updates' metrics of the episode under way, read
+        self.start_time = time.time()  # less the wall time of the runs a resume continues (start())
+
+    @property
+    def path(self):
+        return self.files.path
+
+    @property
+    def frame(self):
+        return self.counters.step * self.cfg.action_repeat if self.counters else self.files.snapshot_frame or 0
+
+    # --- start ---
+    def create(self):
+        """Once the envs are made (every input checked): the start-up warnings, then a new run's
+        directory and its config.json; a resumed run has both."""
+        for message in cli.start_warnings(self.cfg, self.run):
+            cli.warn(message)
+        if self.files.path is None:
+            self.safe_point()  # stopped while the envs were made: nothing to keep
+            self.files.create()
+
+    @staticmethod
+    def safe_point():
+        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops here."""
+        if cli.TERM.pending:
+            raise cli.Terminated
+
+    @staticmethod
+    def stop_pending() -> bool:
+        """A first SIGTERM waits for the next safe point: an evaluation ends at its episode end."""
+        return cli.TERM.pending
+
+    def start(self, agent, buffer, sample_rng: np.random.Generator) -> Counters:
+        """Say what runs, restore a resumed run (weights, RNGs, buffer, counters) and open the logs.
+        Returns the counters the loop advances; the snapshots save them with agent, buffer and
+        sample_rng."""
+        self.agent, self.buffer, self.sample_rng = agent, buffer, sample_rng
+        self.console.say_run(self.path, agent, buffer)
+        counters, wall_time = self.restore() if self.resumed else (Counters(), 0.0)
+        self.files.open_logs()
+        self.health.see_rewards(buffer.rewards[:len(buffer)].cpu().numpy())
+        self.start_time = time.time() - wall_time
+        self.counters = counters
+        self.files.check_free_space(snapshot_bytes(agent), self.cfg.replay_size * buffer.bytes_per_transition)
+        self.console.say_expected_time(self.frame, self.next_eval())
+        self.console.progress.restart_window(self.frame)
+        return counters
 
     def restore(self) -> tuple[Counters, float]:
         """The resumed snapshot's weights, RNG states and buffer; rows logged after it go to side
         files. Returns its counters and wall time."""
-        state, cfg = self.resumed, self.cfg
-        load_agent(self.agent, state["agent"], cfg, "--resume")
+        state = self.resumed
+        load_agent(self.agent, state["agent"], self.cfg, "--resume")
         set_rng_state(state["rng"])
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]
@@ -1098,18 +1329,12 @@ class RunDir:
         # owned its schedule saved the next evaluation's frame instead of the last one's.
         counters = Counters(c["step"], c["episode"] + (1 if c["mid_episode"] else 0),
                             c.get("last_eval_frame", c.get("next_eval", 0) - 1))
-        buffer_path = os.path.join(self.path, "buffer.npz")
-        if not (os.path.exists(buffer_path) and state.get("buffer_saved")):
-            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
-        elif saved_buffer_t(buffer_path) != state.get("buffer_t", saved_buffer_t(buffer_path)):
-            print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
-        else:
-            load_buffer(self.buffer, buffer_path)
-        frame = counters.step * cfg.action_repeat
-        set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
-        # A snapshot taken at an episode end precedes that frame's evaluation: the resumed run
-        # evaluates again from its next evaluation on, so rows from there go aside too.
-        set_aside_rows_after(os.path.join(self.path, "eval.csv"), min(frame, self.next_eval(counters) - 1))
+        self.files.restore_buffer(self.buffer)
+        frame = counters.step * self.cfg.action_repeat
+        # A snapshot taken at an episode end precedes that frame's evaluation (and one a SIGTERM cut
+        # short wrote no row): the resumed run evaluates again from its next evaluation on, so rows
+        # from there go aside too.
+        self.files.set_aside_after(frame, min(frame, self.next_eval(counters) - 1))
         print(f"resumed at frame {frame}, episode {counters.episode}")
         return counters, c["wall_time"]
 
@@ -1123,8 +1348,8 @@ class RunDir:
         """A snapshot between episodes, off the training-speed clock."""
         began = time.time()
         self.save()
-        self.progress.pause(time.time() - began)
-        self.progress.say(f"snapshot at frame {self.frame}")
+        self.console.progress.pause(time.time() - began)
+        self.console.progress.say(f"snapshot at frame {self.frame}")
 
     def save(self):
         """snapshot.pt (and buffer.npz); never of an agent whose parameters are no longer finite: the
@@ -1135,60 +1360,41 @@ class RunDir:
         payload = {"config": cli.config_dict(self.cfg, self.run), "agent": self.agent.state_dict(),
                    "rng": rng_state(), "sample_rng": self.sample_rng.bit_generator.state,
                    "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters,
-                   "progress": self.progress.state()}  # the ETA of the next start
-        # Buffer first, then snapshot.pt; each write is atomic, and buffer_t tells a resume
-        # whether a kill between the two left a buffer newer than the snapshot.
-        if self.run.save_buffer:
-            save_buffer(self.buffer, os.path.join(self.path, "buffer.npz"))
-        save_snapshot(self.path, payload)
-        self.snapshot_frame = self.frame
+                   "progress": self.console.progress.state()}  # the ETA of the next start
+        self.files.save(payload, self.buffer, self.frame)
 
     def finish(self) -> str:
         """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the path."""
         self.read_updates()  # the cut episode's updates get no row, but their health checks
         self.save()
-        self.progress.say(f"done: {self.frame} frames in {time.time() - self.start_time:.0f} s; outputs in {self.path}")
-        if self.writer:
-            self.writer.close()
+        self.console.progress.say(f"done: {self.frame} frames in {time.time() - self.start_time:.0f} s; "
+                                  f"outputs in {self.path}")
+        self.files.close()
         return self.path
 
+    # --- the with block: how a run stops ---
     def __enter__(self):
-        if self.path is not None:
+        if self.files.path is not None:
             try:
-                self.own()
+                self.files.own()
             except cli.StorageError as e:
                 self.release()
-                raise self.what_stands(e) from None
-        cli.TERM.defer, cli.TERM.stands = True, self.what_a_kill_leaves
+                raise self.files.what_stands(e) from None
+        cli.TERM.defer, cli.TERM.stands, cli.TERM.waits_for = True, self.files.what_a_kill_leaves, self.waits_for
         return self
 
-    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
-        """A storage error's line, ended with what the run dir holds now and how to go on."""
-        if self.path is None:
-            return cli.StorageError(f"{error}; no run directory was made")
-        if self.snapshot_frame is None:
-            return cli.StorageError(f"{error}; {self.path} " + ("had no snapshot yet and was removed (nothing to "
-                                                                "resume)" if removed else
-                                                                "has no snapshot yet, so there is nothing to resume"))
-        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: fix that, then "
-                                f"python sear.py --resume {self.path}")
-
-    def what_a_kill_leaves(self) -> str:
-        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its watcher
-        thread while the main thread is stuck in a native call): no other cleanup runs."""
-        if self.path is None:
-            return "nothing was saved"
-        if self.snapshot_frame is None:
-            return f"{self.path} " + ("had no snapshot yet and was removed" if self.remove_if_unsaved()
-                                      else "has no snapshot yet, so there is nothing to resume: delete it")
-        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python sear.py --resume "
-                f"{self.path}")
+    def waits_for(self) -> str:
+        """What a first SIGTERM waits for (cli.TermSignal prints it): before the run's first episode, the
+        next safe point; then the next episode end, or the end of the evaluation episode under way."""
+        if self.counters is None:
+            return ("the end of the start-up (before the run directory is made, or at the first episode), "
+                    "with a snapshot once there is a run directory")
+        return self.console.waits_for(self.frame, self.counters.mid_episode)
 
     def release(self):
         cli.TERM.defer = cli.TERM.pending = False
-        cli.TERM.stands = None
-        if self.lock is not None:
-            self.lock.release()
+        cli.TERM.stands = cli.TERM.waits_for = None
+        self.files.release()
 
     def __exit__(self, kind, error, traceback):
         try:
@@ -1208,36 +1414,36 @@ class RunDir:
         where = ("starting" if c is None else "end of budget" if frame >= self.cfg.frames
                  else "mid-episode" if c.mid_episode else "between episodes")
         if (issubclass(kind, KeyboardInterrupt) and where in ("between episodes", "end of budget")
-                and self.snapshot_frame != frame):
-            try:
-                self.save()
-            except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
-                pass
-            except cli.StorageError as e:
-                failed = f" (the snapshot of frame {frame} failed: {e})"
-            except cli.NonFinite:
-                failed = f" (no snapshot of frame {frame}: parameters no longer finite in {self.non_finite_networks()})"
-        removed = self.remove_if_unsaved()
+                and self.files.snapshot_frame != frame):
+            failed = self.save_on_stop()
+        removed = self.files.remove_if_unsaved()
         if issubclass(kind, cli.StorageError):
-            raise self.what_stands(error, removed) from None
+            raise self.files.what_stands(error, removed) from None
         if issubclass(kind, cli.NonFinite):
             raise cli.NonFinite(self.diverged(error, removed)) from None
         if issubclass(kind, KeyboardInterrupt):
             cause, code = cli.stop_cause(error)
-            raise cli.Interrupted(interrupt_message(self.path, frame, where, self.snapshot_frame,
-                                                    self.run.snapshot_minutes, cause, removed) + failed, code) from None
+            line = interrupt_message(self.path, frame, where + self.cut, self.files.snapshot_frame,
+                                     self.run.snapshot_minutes, cause, removed)
+            raise cli.Interrupted(line + failed, code) from None
 
-    def remove_if_unsaved(self) -> bool:
-        """A new run's directory without a snapshot: removed (True if it is gone)."""
-        if self.run.resume or self.path is None or self.snapshot_frame is not None:
-            return False
-        shutil.rmtree(self.path, ignore_errors=True)  # the lock file goes too; the lock itself is an open fd
-        return not os.path.exists(self.path)
+    def save_on_stop(self) -> str:
+        """The snapshot of a Ctrl-C or SIGTERM between episodes; '' or why there is none."""
+        frame = self.frame
+        try:
+            self.save()
+        except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
+            pass
+        except cli.StorageError as e:
+            return f" (the snapshot of frame {frame} failed: {e})"
+        except cli.NonFinite:
+            return (f" (no snapshot of frame {frame}: parameters no longer finite in "
+                    f"{self.non_finite_networks()})")
+        return ""
 
     def non_finite_networks(self) -> list[str]:
         """The agent's networks with a parameter that is not a finite number."""
-        agent = getattr(self, "agent", None)
-        nets = {name: getattr(agent, name, None) for name in ("encoder", "actor", "critic", "aux")}
+        nets = {name: getattr(self.agent, name, None) for name in ("encoder", "actor", "critic", "aux")}
         return [name for name, net in nets.items()
                 if net is not None and not all(torch.isfinite(p).all() for p in net.parameters())]
 
@@ -1252,9 +1458,10 @@ class RunDir:
         line = (f"the run diverged at frame {self.frame}: {error}"
                 + (f" (parameters no longer finite: {', '.join(nets)})" if nets else "")
                 + "; it stopped before that reached the simulator")
-        if self.snapshot_frame is not None:
-            return (line + f"; the last snapshot (frame {self.snapshot_frame}) stands: python sear.py --resume "
-                    f"{self.path} continues from it (with --save-buffer it replays the same updates): docs/health.md")
+        if self.files.snapshot_frame is not None:
+            return (line + f"; the last snapshot (frame {self.files.snapshot_frame}) stands: python sear.py "
+                    f"--resume {self.path} continues from it (with --save-buffer it replays the same "
+                    f"updates): docs/health.md")
         return (line + f"; {self.path} " + ("had no snapshot yet and was removed" if removed else
                                             "has no snapshot yet, so there is nothing to resume")
                 + "; start again with other settings (a lower --lr, smaller loss weights): docs/health.md")
@@ -1262,14 +1469,15 @@ class RunDir:
     # --- logs ---
     def log_update(self, metrics: dict):
         """An update's metrics (0-d tensors on the device, as the agent returns them): kept there until
-        the next log line reads them all at once (read_updates), so that updates never wait for the host."""
-        self.progress.updates += 1
+        the next log line reads them all at once (read_updates), so that updates never wait for the
+        host."""
+        self.console.progress.updates += 1
         self.pending.append(metrics)
 
     def read_updates(self):
-        """The pending updates' metrics, read in one device sync: into the episode's means, and through the
-        health checks, update by update (a value that is not finite stops the run; an agent whose weights
-        went NaN is stopped sooner, at its next action, by FiniteActions)."""
+        """The pending updates' metrics, read in one device sync: into the episode's means, and through
+        the health checks, update by update (a value that is not finite stops the run; an agent whose
+        weights went NaN is stopped sooner, at its next action, by FiniteActions)."""
         values = [v for metrics in self.pending for v in metrics.values()]
         tensors = [v for v in values if torch.is_tensor(v)]
         read = iter(torch.stack([v.detach().double() for v in tensors]).tolist() if tensors else [])
@@ -1278,93 +1486,75 @@ class RunDir:
         for metrics in pending:
             metrics = {k: next(values) for k in metrics}
             for kind, message in self.health.check(metrics):
-                self.progress.flags.append(f"warning: {kind}")
-                cli.warn(message)
-                if self.writer:
-                    self.writer.add_text("health", message, self.frame)
+                self.console.warn(kind, message)
+                self.files.note("health", message, self.frame)
             for k, v in metrics.items():
                 self.metrics.setdefault(k, []).append(v)
 
-    def tick(self):
-        """After every env step: the speeds, and once they are measured what the run costs here."""
-        self.progress.measure(self.frame)
-        cost = self.progress.cost(self.frame, self.next_eval())
-        if cost:
-            self.progress.say(cost)
-
     def show_step(self, ep_len):
-        self.tick()
-        self.progress.update(self.frame, f"ep {self.counters.episode} step {ep_len}",
-                             self.progress.eta(self.frame, self.next_eval()))
+        self.console.show_step(self.frame, self.counters.episode, ep_len, self.next_eval())
 
     def log_episode(self, ep_return, ep_len, ep_success, info):
         """A train.csv row (and TensorBoard scalars) for the episode that just ended."""
-        frame, episode, progress, b = self.frame, self.counters.episode, self.progress, self.buffer
+        frame, episode, b = self.frame, self.counters.episode, self.buffer
         self.read_updates()
-        self.tick()
-        self.health.see_rewards(b.rewards[torch.arange(b.t - ep_len, b.t) % b.capacity].cpu().numpy())  # the episode's
-        row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return, "length": ep_len}
+        self.console.tick(frame, self.next_eval())
+        # the episode's rewards
+        self.health.see_rewards(b.rewards[torch.arange(b.t - ep_len, b.t) % b.capacity].cpu().numpy())
+        row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return,
+               "length": ep_len}
         if "success" in info:
             row["success"] = float(ep_success)
         if "task" in info:  # task sets: which task the episode drew
             row["task"] = info["task"]
         means = {k: float(np.mean(v)) for k, v in self.metrics.items()}
         row.update({k: means.get(k, "") for k in self.agent.metric_names})
-        row.update({"fps": round(progress.fps, 2), "wall_time": round(time.time() - self.start_time, 2)})
-        self.train_log.write(row)
-        if self.writer:
-            self.writer.add_scalar("train/return", ep_return, frame)
-            for k, v in means.items():
-                self.writer.add_scalar(f"train/{k}", v, frame)
-        progress.update(frame, f"ep {episode} return {ep_return:.1f}", progress.eta(frame, self.next_eval()),
-                        force=True)
-        progress.restart_window(frame)
+        row.update({"fps": round(self.console.progress.fps, 2),
+                    "wall_time": round(time.time() - self.start_time, 2)})
+        scalars = {"train/return": ep_return, **{f"train/{k}": v for k, v in means.items()}}
+        self.files.write_row(self.files.train_log, row, scalars, frame)
+        self.console.show_episode(frame, episode, ep_return, self.next_eval())
         self.metrics = {}
 
     # --- evaluations ---
     def untrained(self) -> str:
         """What an evaluation before any update scores ('' once the agent has been updated)."""
-        if self.frame or self.progress.updates:
+        if self.frame or self.console.progress.updates:
             return ""
         return "the policy copied by --init-from" if self.run.init_from else "the untrained policy"
 
     def start_eval(self, eval_env) -> EvalWatch:
-        """The eval env for sear.evaluate(), watched: the decoders' metrics, and the first episode
-        filmed with --save-video. Off the training-speed clock until log_eval()."""
-        self.eval_began, self.eval_episodes = time.time(), len(eval_tasks(eval_env, self.cfg))
-        untrained = self.untrained()
-        self.progress.say(f"evaluating at frame {self.frame} ({self.eval_episodes} episodes)"
-                          + (f": {untrained}, before any update" if untrained else ""))
-        video = os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video else None
+        """The eval env for train.evaluate(), watched: the decoders' metrics, and the first episode
+        filmed with --save-video. Off the training-speed clock until end_eval()."""
+        self.console.start_eval(self.frame, len(eval_tasks(eval_env, self.cfg)), self.untrained())
+        video = (os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video
+                 else None)
         self.watch = EvalWatch(self.agent, eval_env, video)
         return self.watch
 
     def show_eval(self, episode, t):
-        """The progress line during an evaluation (sear.evaluate's on_step): which episode, of which
-        policy at frame 0, and once an episode is done how long the evaluation has left."""
-        done, spent, untrained = episode / self.eval_episodes, time.time() - self.eval_began, self.untrained()
-        text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
-                + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
-        self.progress.update(self.frame, text, self.progress.eta(self.frame, self.next_eval(), done, spent))
+        """The progress line during an evaluation (train.evaluate's on_step)."""
+        self.console.show_eval(self.frame, episode, t, self.untrained(), self.next_eval())
 
-    def log_eval(self, episodes):
-        """An eval.csv row (and TensorBoard scalars) for sear.evaluate()'s episodes."""
-        c, frame, progress = self.counters, self.frame, self.progress
-        scores = self.watch.finish()
-        progress.eval_seconds.append(time.time() - self.eval_began)
-        row = {"frame": frame, "step": c.step, "episode": c.episode, "return": float(np.mean([e.ret for e in episodes])),
+    def end_eval(self, episodes) -> bool:
+        """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True); none for an
+        evaluation that a SIGTERM cut short (False): the resumed run evaluates again."""
+        c, frame, watch = self.counters, self.frame, self.watch
+        scores = watch.finish()
+        self.watch = None
+        seconds = self.console.end_eval(frame, len(episodes))
+        if len(episodes) < self.console.eval_episodes:
+            self.cut = (f"; its evaluation stopped after {len(episodes)} of {self.console.eval_episodes} "
+                        f"episodes, redone on resume")
+            return False
+        row = {"frame": frame, "step": c.step, "episode": c.episode,
+               "return": float(np.mean([e.ret for e in episodes])),
                "wall_time": round(time.time() - self.start_time, 2), **eval_columns(episodes), **scores}
         if measures_learned_iou(self.cfg):  # the mask model's IoU on these episodes' frames
-            row["learned_mask_iou"] = scores["learned_mask_iou"] = self.watch.env.pop()
-            if warning := self.watch.env.low_iou.see(row["learned_mask_iou"], frame):
+            row["learned_mask_iou"] = scores["learned_mask_iou"] = watch.env.pop()
+            if warning := watch.env.low_iou.see(row["learned_mask_iou"], frame):
                 cli.warn(warning)
-        self.eval_log.write(row)
-        if self.writer:
-            self.writer.add_scalar("eval/return", row["return"], frame)
-            for name, value in scores.items():
-                self.writer.add_scalar(f"eval/{name}", value, frame)
-        progress.say(f"eval @ frame {frame}: return {row['return']:.1f}"
-                     + (f", success {row['success']:.2f}" if "success" in row else "")
-                     + "".join(f", {name} {value:.3g}" for name, value in scores.items())
-                     + f" ({progress.eval_seconds[-1]:.1f} s)")
-        progress.pause(time.time() - self.eval_began)
+        scalars = {"eval/return": row["return"], **{f"eval/{name}": v for name, v in scores.items()}}
+        self.files.write_row(self.files.eval_log, row, scalars, frame)
+        self.console.say_eval(frame, row, scores, seconds)
+        return True

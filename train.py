@@ -60,12 +60,16 @@ class Episode(NamedTuple):
     task: str | None      # the task of a task set, else None
 
 
-def evaluate(agent: Agent, env, cfg: Config, step: int, on_step=None) -> list[Episode]:
+def evaluate(agent: Agent, env, cfg: Config, step: int, on_step=None, stop=None) -> list[Episode]:
     """Episodes with the mean action on the eval env, from the same reset seeds at every evaluation
     (so that evaluations compare); a task set runs each of its tasks (experiment.eval_tasks).
-    on_step(episode, t), if given, is called after every step (the progress line)."""
+    on_step(episode, t), if given, is called after every step (the progress line); stop(), if given,
+    before every episode: once it is true the evaluation ends there, with fewer episodes (a first
+    SIGTERM cuts an evaluation at an episode end)."""
     episodes = []
     for i, task in enumerate(experiment.eval_tasks(env, cfg)):
+        if stop is not None and stop():
+            break
         obs, info = env.reset(seed=experiment.episode_seed(cfg.seed + experiment.EVAL_SEED, i),
                               options=None if task is None else {"task": task})
         done, ret, success, t = False, 0.0, False, 0
@@ -97,10 +101,15 @@ def eval_due(frame: int, last_eval_frame: int, every: int) -> bool:
 
 
 def evaluate_and_log(agent: Agent, eval_env, cfg: Config, counters, rundir) -> None:
-    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the counter."""
+    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the counter.
+    While a first SIGTERM waits there is none, and one it cuts short at an episode end leaves the
+    counter: the run stops at its next safe point, and the resumed run evaluates again."""
+    if rundir.stop_pending():
+        return
     env = rundir.start_eval(eval_env)  # the eval env, scored by the decoders, filmed with --save-video
-    rundir.log_eval(evaluate(agent, env, cfg, counters.step, on_step=rundir.show_eval))
-    counters.last_eval_frame = counters.step * cfg.action_repeat
+    episodes = evaluate(agent, env, cfg, counters.step, on_step=rundir.show_eval, stop=rundir.stop_pending)
+    if rundir.end_eval(episodes):  # False: cut short
+        counters.last_eval_frame = counters.step * cfg.action_repeat
 
 
 def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
@@ -133,13 +142,16 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
 
         frame = counters.step * cfg.action_repeat
         while frame < cfg.frames:  # drqv2's Until, in frames
-            if not counters.mid_episode:
-                rundir.safe_point()  # a first SIGTERM stops the run here, between episodes (with a snapshot)
+            if not counters.mid_episode:  # between episodes: a first SIGTERM stops here, with a snapshot
+                rundir.safe_point()
+                if eval_due(frame, counters.last_eval_frame, cfg.eval_every):
+                    evaluate_and_log(agent, eval_env, cfg, counters, rundir)
+                    rundir.safe_point()  # after an evaluation a SIGTERM cut short: redone on resume
                 counters.mid_episode = True
                 obs, info = train_env.reset(seed=experiment.episode_seed(cfg.seed, counters.episode))
                 buffer.add_first(obs)
                 ep_return, ep_len, ep_success = 0.0, 0, False
-            if eval_due(frame, counters.last_eval_frame, cfg.eval_every):
+            elif eval_due(frame, counters.last_eval_frame, cfg.eval_every):  # --eval-every inside an episode
                 evaluate_and_log(agent, eval_env, cfg, counters, rundir)
 
             # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
@@ -170,6 +182,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
 
         if counters.last_eval_frame != frame:  # the budget ends with an evaluation at its last frame
             evaluate_and_log(agent, eval_env, cfg, counters, rundir)
+            rundir.safe_point()  # cut short by a SIGTERM: the snapshot's resume evaluates again
         rundir.finish()  # the final snapshot
         for closing in (prefetcher, train_env, eval_env):
             if closing is not None:
