@@ -56,6 +56,9 @@ from functools import reduce
 
 import numpy as np
 
+import cli  # the standard library only: the curves need neither torch nor MuJoCo
+
+
 class PlotError(Exception):
     """Bad input: reported as one line on stderr, exit code 2."""
 
@@ -188,7 +191,6 @@ def env_of(run: dict) -> str:
 def config_label(config: dict, key: str) -> str:
     """A config value as a line's label names it; the method with its variant: drq+drm (--drm)."""
     if key == "method":
-        import cli  # stdlib only; imported here as the other project modules are
         return cli.method_label(config)
     return str(config[key])
 
@@ -204,15 +206,16 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
     return dict(sorted(groups.items()))
 
 
-# Config values that do not change what a line means: the seed, the budget (each run is drawn to its own
-# end), where the run lives and how it is computed (device, threads, prefetch), what it writes (logs,
-# snapshots, videos, the buffer) and how often and how long it is evaluated (eval_every moves the points,
-# eval_episodes makes each one less noisy: the curve is an estimate of the same thing). Runs that differ
-# only in these are seeds of one line. sear.py's RESUME_MAY_CHANGE is a subset.
+# Config values that do not change what a line means: the seed, the budget (each run is drawn to its
+# own end), where the run lives and how it is computed (device, threads, the replay's device, prefetch,
+# compilation, TF32), what it writes (logs, snapshots, videos, the buffer) and how often and how long it
+# is evaluated (eval_every moves the points, eval_episodes makes each one less noisy: the curve is an
+# estimate of the same thing). Runs that differ only in these are seeds of one line. cli's
+# RESUME_MAY_CHANGE is a subset.
 NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
                  "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate",
                  "eval_every", "eval_episodes", "eval_episodes_per_task",
-                 "compile", "cuda_graphs"}
+                 "compile", "cuda_graphs", "replay_device", "tf32"}
 
 
 def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
@@ -370,24 +373,41 @@ def keep_axes_height(fig, axes: list, rows: int) -> None:
 
 def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None,
          references: dict | None = None, estimates: dict | None = None, ylabels: dict | None = None):
-    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's title, or
-    the panels' titles where panels differ); ylabels: {panel: its y-label} where not `ylabel`. Each
+    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's title,
+    or the panels' titles where panels differ); ylabels: {panel: its y-label} where not `ylabel`. Each
     --reference curve is cut to the last frame of its panel's runs."""
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter
 
-    labels = sorted({label for curves in panels.values() for label in curves})
-    colors = {label: f"C{i % 10}" for i, label in enumerate(labels)}  # same group, same color
     cols = min(len(panels), 3)
     rows = math.ceil(len(panels) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows), squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows),
+                             squeeze=False, layout="constrained")
     used = list(axes.flat[:len(panels)])
     what = {panel: (estimates or {}).get(panel, "mean ± 95% CI") for panel in panels}
     one_estimate = len(set(what.values())) == 1
-    dashed, entries, others = False, {}, {}  # the legend: the lines first, then baselines and references
+    titles = {panel: (panel if len(panels) > 1 else title) + ("" if one_estimate else f"\n{what[panel]}")
+              for panel in panels}
+    dashed, entries = draw_panels(used, panels, titles, (ylabels or {}, ylabel), baseline, references or {})
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    legend_title = "; ".join([*([next(iter(what.values()))] if one_estimate else []),
+                              *(["dashed: fewer runs"] if dashed else [])])
+    lay_out(fig, axes, used, entries, legend_title or None, title if len(panels) > 1 else None)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def draw_panels(used: list, panels: dict, titles: dict, ylabels: tuple[dict, str], baseline,
+                references: dict) -> tuple[bool, dict]:
+    """Each panel's lines, baseline and --reference curves on its axes. Returns whether a line is
+    dashed somewhere, and the legend's entries: the lines first, then baselines and references."""
+    from matplotlib.ticker import FuncFormatter
+    labels = sorted({label for curves in panels.values() for label in curves})
+    colors = {label: f"C{i % 10}" for i, label in enumerate(labels)}  # same group, same color
+    dashed, entries, others = False, {}, {}
     for ax, (panel, curves) in zip(used, panels.items()):
         for label, (frames, mean, ci, n, _env) in curves.items():
             dashed |= draw_line(ax, frames, mean, ci, n, colors[label], label)
@@ -395,37 +415,35 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
         if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
             ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
         last = max((c[0][-1] for c in curves.values()), default=None)
-        for i, ref in enumerate((references or {}).get(panel, [])):  # --reference: published curves
+        for i, ref in enumerate(references.get(panel, [])):  # --reference: published curves
             draw_reference(ax, ref, i, upto=last)
-        ax.set_title((panel if len(panels) > 1 else title) + ("" if one_estimate else f"\n{what[panel]}"))
+        ax.set_title(titles[panel])
         ax.set_xlabel("frames")
-        ax.set_ylabel((ylabels or {}).get(panel, ylabel))
+        ax.set_ylabel(ylabels[0].get(panel, ylabels[1]))
         ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
         ax.grid(alpha=0.3)
         rate_axis(ax, ax.get_ylabel())
         others.update((label, h) for h, label in zip(*ax.get_legend_handles_labels()) if label not in entries)
-    entries.update(others)
-    for ax in axes.flat[len(panels):]:
-        ax.axis("off")
-    suptitle = fig.suptitle(title) if len(panels) > 1 else None
-    legend_title = "; ".join([*([next(iter(what.values()))] if one_estimate else []),
-                              *(["dashed: fewer runs"] if dashed else [])])
+    return dashed, {**entries, **others}
+
+
+def lay_out(fig, axes, used: list, entries: dict, legend_title: str | None, suptitle: str | None):
+    """The legend (inside a single panel when short, else in the grid's empty slot or below), titles
+    wrapped to fit, and the axes kept AXES_HEIGHT tall."""
+    suptitle = fig.suptitle(suptitle) if suptitle is not None else None
     renderer = fig.canvas.get_renderer()
-    if len(panels) == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries), default=0) <= LABEL_INSIDE:
-        used[0].legend(fontsize="small", title=legend_title or None, title_fontsize="small")
+    if len(used) == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries), default=0) <= LABEL_INSIDE:
+        used[0].legend(fontsize="small", title=legend_title, title_fontsize="small")
     elif entries:
         fig.canvas.draw()  # the layout: the empty slot's size
-        spare = axes.flat[len(panels)] if len(panels) < axes.size else None
-        place_legend(fig, entries, legend_title or None, spare, renderer)
+        spare = axes.flat[len(used)] if len(used) < axes.size else None
+        place_legend(fig, entries, legend_title, spare, renderer)
     fig.canvas.draw()
     for ax in used:
         fit_text(ax.title, ax.get_window_extent(renderer).width, renderer)
     if suptitle is not None:
         fit_text(suptitle, 0.98 * fig.get_figwidth() * fig.dpi, renderer)
-    keep_axes_height(fig, used, rows)
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
+    keep_axes_height(fig, used, axes.shape[0])
 
 
 def summary_table(panels: dict, metric: str) -> str:
@@ -546,7 +564,6 @@ ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; 
 
 def load_snapshot_run(run_dir: str):
     """(train.Config, snapshot) of a run directory; PlotError for anything that is not one."""
-    import cli
     import sear
     import train
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
@@ -563,7 +580,6 @@ def load_snapshot_run(run_dir: str):
 
 def trained_agent(cfg, state, action_dim: int):
     import torch
-    import cli
     import sear
     import train
     agent = train.make_agent(cfg, action_dim, torch.device("cpu"))
@@ -577,7 +593,6 @@ def trained_agent(cfg, state, action_dim: int):
 def open_env(cfg):
     """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
     clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
-    import cli
     import experiment
     try:
         return experiment.make_run_env(cfg, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
@@ -732,14 +747,16 @@ def maps_table(runs: list[dict], mask_fraction: float) -> str:
 
 
 def maps_main(argv) -> int:
-    parser = OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's last "
-                           "convolution for one or more runs on the same frames (the paper's section 5), "
-                           "and each channel's share of activation on the robot.")
+    parser = cli.OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's last "
+                               "convolution for one or more runs on the same frames (the paper's section 5), "
+                               "and each channel's share of activation on the robot.")
     parser.add_argument("runs", nargs="+", help="run directories (config.json and snapshot.pt), all on one env")
     parser.add_argument("--out", default="runs/maps.png", help="PNG to write (default runs/maps.png)")
     parser.add_argument("--frames", type=int, default=2, help=f"frames to show, {MAPS_STRIDE} agent steps apart")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    args = parser.parse_args(argv)
+    args = parse(parser, argv)
+    if args is None:
+        return 2
     try:
         if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
             raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
@@ -751,7 +768,6 @@ def maps_main(argv) -> int:
             if (cfg.env, cfg.frame_stack) != (first.env, first.frame_stack):
                 raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), {loaded[0][0]} on "
                                 f"{first.env} (frame stack {first.frame_stack}): maps compare runs on the same frames")
-        import cli
         import torch
         torch.set_num_threads(cli.default_threads())
         env = open_env(first)
@@ -784,17 +800,9 @@ def maps_main(argv) -> int:
 
 
 # ---------------------------------------------------------------- CLI
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    if argv[:1] == ["maps"]:  # a folder of runs named "maps" is given as ./maps
-        return maps_main(argv[1:])
-    parser = OneLineParser(prog="plot.py", description=__doc__.split("\n\n")[0],
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser(parser_class):
+    parser = parser_class(prog="plot.py", description=__doc__.split("\n\n")[0],
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
     parser.add_argument("--out", default="runs/curves.png", help="PNG to write (default runs/curves.png)")
     parser.add_argument("--metric", default="return", help="return | success | any column of the CSV read "
@@ -810,62 +818,100 @@ def main(argv=None) -> int:
                         help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and min-max "
                              "band over its seeds, on the panels of its task; repeatable")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def parse(parser, argv):
+    """The arguments, or None after one line on stderr (`<prog>: error: ...`: cli.OneLineParser's)."""
     try:
-        references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
-        baseline = None
-        if args.baseline is not None:
-            value, _, label = args.baseline.partition(":")
-            try:
-                baseline = (float(value), label or "baseline")
-            except ValueError:
-                raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
-        if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
-            raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
-        keys = [k.strip() for k in args.group.split(",") if k.strip()]
-        if not keys:
-            raise PlotError("--group needs at least one config key, e.g. method")
-        if args.per_task and args.csv != "eval":
-            raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
-        runs = []
-        found = find_runs(args.paths)
-        for d in found:
-            try:
-                runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
-            except NoLogYet as e:  # one run stopped early must not hide all the others
-                print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
-        if not runs:
-            raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
-        if args.per_task:
-            runs += task_mean_runs(runs)
-        envs = sorted({env_of(r) for r in runs})
-        # One subplot per env, unless env is already told apart by the lines (or there is just one);
-        # with --per-task one per task (and env).
-        by_env = len(envs) > 1 and "env" not in keys
-        keyed = {}
-        for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
-            key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
-            keyed.setdefault(key or ", ".join(envs), []).append(r)
-        panels = {}
-        for panel, members in keyed.items():
-            panels[panel] = {}
-            differ = differing_settings(members, keys)
-            for label, group in (line for g in group_runs(members, keys).items()
-                                 for line in split_by_config(*g, differ).items()):
-                seeds = [r["config"].get("seed") for r in group]
-                if len(set(seeds)) < len(seeds):
-                    print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
-                warn_uneven_ends(f"{label} ({panel})", group)
-                curves = [(r["frames"], r["values"]) for r in group]
-                envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
-                if "task" in group[0]:  # --per-task: the table names the task too
-                    envs_of_group += f": {group[0]['task']}"
-                interpolate = args.csv == "train"
-                panels[panel][label] = (*aggregate(curves, interpolate), coverage(curves, interpolate),
-                                        envs_of_group)
+        return parser.parse_args(argv)
+    except cli.ConfigError as e:
+        print(f"{parser.prog}: error: {e}", file=sys.stderr)
+        return None
+
+
+def checked_args(args) -> tuple[list, tuple[float, str] | None, list[str]]:
+    """(--reference curves, --baseline, --group keys), read and checked before any run is."""
+    references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
+    baseline = None
+    if args.baseline is not None:
+        value, _, label = args.baseline.partition(":")
+        try:
+            baseline = (float(value), label or "baseline")
+        except ValueError:
+            raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
+    if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
+        raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
+    keys = [k.strip() for k in args.group.split(",") if k.strip()]
+    if not keys:
+        raise PlotError("--group needs at least one config key, e.g. method")
+    if args.per_task and args.csv != "eval":
+        raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
+    return references, baseline, keys
+
+
+def load_runs(args) -> list[dict]:
+    """The runs the paths name (with --per-task one per task, and their means); a run without the CSV
+    yet is skipped with one line."""
+    runs = []
+    found = find_runs(args.paths)
+    for d in found:
+        try:
+            runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
+        except NoLogYet as e:  # one run stopped early must not hide all the others
+            print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
+    if not runs:
+        raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
+    return runs + (task_mean_runs(runs) if args.per_task else [])
+
+
+def panel_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
+    """{panel: runs}: one panel per env, unless env is already told apart by the lines (or there is just
+    one); with --per-task one per task (and env)."""
+    envs = sorted({env_of(r) for r in runs})
+    by_env = len(envs) > 1 and "env" not in keys
+    keyed = {}
+    for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
+        key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
+        keyed.setdefault(key or ", ".join(envs), []).append(r)
+    return keyed
+
+
+def panel_lines(panel: str, members: list[dict], keys: list[str], interpolate: bool) -> dict:
+    """{label: (frames, mean, ci, runs per frame, envs)} of a panel's lines."""
+    lines = {}
+    differ = differing_settings(members, keys)
+    for label, group in (line for g in group_runs(members, keys).items()
+                         for line in split_by_config(*g, differ).items()):
+        seeds = [r["config"].get("seed") for r in group]
+        if len(set(seeds)) < len(seeds):
+            print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
+        warn_uneven_ends(f"{label} ({panel})", group)
+        curves = [(r["frames"], r["values"]) for r in group]
+        envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
+        if "task" in group[0]:  # --per-task: the table names the task too
+            envs_of_group += f": {group[0]['task']}"
+        lines[label] = (*aggregate(curves, interpolate), coverage(curves, interpolate), envs_of_group)
+    return lines
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    if argv[:1] == ["maps"]:  # a folder of runs named "maps" is given as ./maps
+        return maps_main(argv[1:])
+    args = parse(build_parser(cli.OneLineParser), argv)
+    if args is None:
+        return 2
+    try:
+        references, baseline, keys = checked_args(args)
+        keyed = panel_runs(load_runs(args), keys)
+        panels = {panel: panel_lines(panel, members, keys, args.csv == "train")
+                  for panel, members in keyed.items()}
+        envs = sorted({env_of(r) for members in keyed.values() for r in members})
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else args.metric}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references)
+        drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()},
+                               references)
         plot(panels, args.out, ylabel, title, baseline, drawn)
     except PlotError as e:
         print(f"plot.py: error: {e}", file=sys.stderr)

@@ -393,11 +393,6 @@ class LearnedMaskIoU(gym.Wrapper):
 # ================================================================================================
 # CLI
 # ================================================================================================
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def parse_channels(text: str) -> tuple[int, ...]:
     try:
         channels = tuple(int(c) for c in text.split(","))
@@ -408,9 +403,10 @@ def parse_channels(text: str) -> tuple[int, ...]:
     return channels
 
 
-def build_parser() -> OneLineParser:
-    parser = OneLineParser(prog="segment.py", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+def build_parser() -> cli.OneLineParser:
+    """segment.py's commands and flags; a bad one is a cli.ConfigError (one line)."""
+    parser = cli.OneLineParser(prog="segment.py", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=cli.OneLineParser)
     train = sub.add_parser("train", help="train a mask model from labelled frames and save it")
     source = train.add_mutually_exclusive_group(required=True)
     source.add_argument("--folder", help="folder of <name>.png + <name>_mask.png pairs")
@@ -581,10 +577,10 @@ def run_export(args) -> None:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
     try:
+        args = build_parser().parse_args(argv)
         run_train(args) if args.command == "train" else run_export(args)
-    except (SegmentError, cli.StorageError) as e:
+    except (SegmentError, cli.StorageError, cli.ConfigError) as e:
         print(f"segment.py: error: {e}", file=sys.stderr)
         return 2
     return 0

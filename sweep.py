@@ -973,73 +973,28 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
     over the seeds finished on every task. Only finished runs count. Writes <out>/<sweep>/report.png
     and report.md; returns the tables."""
     import plot
-    finished = []
-    for spec in specs:
-        d = os.path.join(out, spec.sweep, spec.name)
-        if is_done(d) and len(run_dirs(d)) == 1:
-            finished.append((spec, run_dirs(d)[0]))
+    finished = [(spec, run_dirs(d)[0]) for spec, d in ((s, os.path.join(out, s.sweep, s.name)) for s in specs)
+                if is_done(d) and len(run_dirs(d)) == 1]
     if not finished:
         print("report: no finished runs yet")
         return None
-    if metric is None:  # a success rate where every run has one, else the return
-        metric = "success" if all(has_column(run, "success") for _, run in finished) else "return"
-    runs = {}
-    for spec, run in finished:
-        try:
-            runs.setdefault((spec.env, spec.variant), {})[spec.seed] = plot.load_run(run, "eval", metric)
-        except plot.PlotError as e:
-            print(f"report: skipping {spec.name}: {e}")
+    metric, runs = finished_runs(finished, metric)
     envs = [e for e in dict.fromkeys(s.env for s in specs) if any(k[0] == e for k in runs)]
     variants = list(dict.fromkeys(s.variant for s in specs))
     if not envs:
         return None
-
-    panels = {}
-    for env in envs:
-        panels[env] = {}
-        for v in variants:
-            curves = [(r["frames"], r["values"]) for r in runs.get((env, v), {}).values()]
-            if curves:
-                panels[env][v] = (*plot.aggregate(curves), plot.coverage(curves), env)
-
-    # Normalised per task (every method's runs of the task together), then over the tasks.
-    how, normalised = {}, {}
-    for env in envs:
-        members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env for seed, r in by_seed.items()]
-        bounds, how[env] = normalisation(env, [r for _, _, r in members], metric)
-        for (k, seed, r), (lo, hi) in zip(members, bounds):
-            normalised.setdefault(k, {})[seed] = (r["frames"], (r["values"] - lo) / (hi - lo))
-    scores, seeds_of = {}, {}
-    for v in variants:
-        seeds = sorted(set.intersection(*(set(normalised.get((e, v), {})) for e in envs)))
-        if not seeds:
-            continue
-        frames = normalised[(envs[0], v)][seeds[0]][0]
-        for e in envs:
-            for s in seeds:
-                frames = np.intersect1d(frames, normalised[(e, v)][s][0])
-        if len(frames) == 0:
-            print(f"report: {v}: its runs share no evaluation frame; left out of the aggregate")
-            continue
-        scores[v] = np.array([[normalised[(e, v)][s][1][np.isin(normalised[(e, v)][s][0], frames)]
-                               for e in envs] for s in seeds])
-        seeds_of[v] = (seeds, frames)
+    panels = {env: {v: (*plot.aggregate(curves), plot.coverage(curves), env) for v in variants
+                    if (curves := [(r["frames"], r["values"]) for r in runs.get((env, v), {}).values()])}
+              for env in envs}
+    how, normalised = normalise(runs, envs, metric)
     overall = f"over {plural(len(envs), 'task')}"
-    aggregate_rows = ["| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|"]
-    if scores:
-        panels[overall] = {}
-        for v, est in across_tasks(scores).items():
-            seeds, frames = seeds_of[v]
-            panels[overall][v] = (frames, est["iqm"], est["iqm_ci"], len(seeds), overall)
-            iqm, mean = (f"{est[k][-1]:.3f} [{est[k + '_ci'][0, -1]:.3f}, {est[k + '_ci'][1, -1]:.3f}]"
-                         for k in ("iqm", "mean"))
-            runs_of = f"{len(seeds)} seed{'s' * (len(seeds) > 1)} x {len(envs)} task{'s' * (len(envs) > 1)}"
-            aggregate_rows.append(f"| {v} | {runs_of} | {frames[-1]:.0f} | {iqm} | {mean} |")
+    aggregate_rows = across_task_lines(normalised, envs, variants, panels, overall)
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     png = os.path.join(out, sweep, "report.png")
     # Per task the raw scores; over the tasks the IQM of the normalised ones (report.md says how each task is).
-    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised per "
-                                   f"task to 0-1 (report.md says how)", ylabels={overall: "IQM of normalised score"},
+    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised "
+                                   f"per task to 0-1 (report.md says how)",
+              ylabels={overall: "IQM of normalised score"},
               estimates={**{e: "mean ± 95% CI over seeds" for e in envs},
                          overall: "IQM, stratified-bootstrap 95% CI"})
     per_task = plot.summary_table({e: panels[e] for e in envs}, metric)
@@ -1055,6 +1010,66 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
     return tables
 
 
+def finished_runs(finished: list[tuple[JobSpec, str]], metric: str | None) -> tuple[str, dict]:
+    """The metric (None: a success rate where every run has one, else the return) and the finished
+    runs' eval.csv curves, {(env, variant): {seed: plot.load_run()}}; a run that cannot be read is
+    skipped with one line."""
+    import plot
+    if metric is None:
+        metric = "success" if all(has_column(run, "success") for _, run in finished) else "return"
+    runs = {}
+    for spec, run in finished:
+        try:
+            runs.setdefault((spec.env, spec.variant), {})[spec.seed] = plot.load_run(run, "eval", metric)
+        except plot.PlotError as e:
+            print(f"report: skipping {spec.name}: {e}")
+    return metric, runs
+
+
+def normalise(runs: dict, envs: list[str], metric: str) -> tuple[dict, dict]:
+    """Per task, how its scores are normalised (every method's runs of the task together), and
+    {(env, variant): {seed: (frames, normalised scores)}}."""
+    how, normalised = {}, {}
+    for env in envs:
+        members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env for seed, r in by_seed.items()]
+        bounds, how[env] = normalisation(env, [r for _, _, r in members], metric)
+        for (k, seed, r), (lo, hi) in zip(members, bounds):
+            normalised.setdefault(k, {})[seed] = (r["frames"], (r["values"] - lo) / (hi - lo))
+    return how, normalised
+
+
+def across_task_lines(normalised: dict, envs: list[str], variants: list[str], panels: dict,
+                      overall: str) -> list[str]:
+    """The IQM over the tasks of every method with runs on all of them: its panel (`overall`, added
+    to `panels`) and its rows of the aggregate table (returned)."""
+    scores, seeds_of = {}, {}
+    for v in variants:
+        seeds = sorted(set.intersection(*(set(normalised.get((e, v), {})) for e in envs)))
+        if not seeds:
+            continue
+        frames = normalised[(envs[0], v)][seeds[0]][0]
+        for e in envs:
+            for s in seeds:
+                frames = np.intersect1d(frames, normalised[(e, v)][s][0])
+        if len(frames) == 0:
+            print(f"report: {v}: its runs share no evaluation frame; left out of the aggregate")
+            continue
+        scores[v] = np.array([[normalised[(e, v)][s][1][np.isin(normalised[(e, v)][s][0], frames)]
+                               for e in envs] for s in seeds])
+        seeds_of[v] = (seeds, frames)
+    rows = ["| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|"]
+    if scores:
+        panels[overall] = {}
+        for v, est in across_tasks(scores).items():
+            seeds, frames = seeds_of[v]
+            panels[overall][v] = (frames, est["iqm"], est["iqm_ci"], len(seeds), overall)
+            iqm, mean = (f"{est[k][-1]:.3f} [{est[k + '_ci'][0, -1]:.3f}, {est[k + '_ci'][1, -1]:.3f}]"
+                         for k in ("iqm", "mean"))
+            runs_of = f"{plural(len(seeds), 'seed')} x {plural(len(envs), 'task')}"
+            rows.append(f"| {v} | {runs_of} | {frames[-1]:.0f} | {iqm} | {mean} |")
+    return rows
+
+
 def has_column(run: str, name: str) -> bool:
     try:
         with open(os.path.join(run, "eval.csv"), newline="") as f:
@@ -1066,17 +1081,14 @@ def has_column(run: str, name: str) -> bool:
 # ================================================================================================
 # 8. CLI
 # ================================================================================================
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
+    """sweep.py's flags; a bad one is a cli.ConfigError (one line)."""
+    import cli  # stdlib only, as sear_config's imports: late
     grids = "; ".join(f"{name}: {g.doc}" for name, g in GRIDS.items())
-    p = OneLineParser(prog="sweep.py", allow_abbrev=False,  # no abbreviations: --seed is sear.py's
-                      description=__doc__.split("\nJob directory")[0],
-                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                      epilog="Unknown flags, and everything after --, go to sear.py.")
+    p = cli.OneLineParser(prog="sweep.py", allow_abbrev=False,  # no abbreviations: --seed is sear.py's
+                          description=__doc__.split("\nJob directory")[0],
+                          formatter_class=argparse.RawDescriptionHelpFormatter,
+                          epilog="Unknown flags, and everything after --, go to sear.py.")
     what = p.add_argument_group("what to run")
     what.add_argument("--grid", help=f"a named grid of the paper: {grids}; transfer: not available yet")
     what.add_argument("--envs", nargs="+", help="tasks (with --grid: a subset of the grid's)")
@@ -1203,9 +1215,14 @@ def unrecorded_sweep(args, flags: list[str], verb: str, sweep: str, folder: str)
 
 
 def main(argv: list[str] | None = None) -> int:
+    import cli
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, after = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
-    args, unknown = build_parser().parse_known_args(ours)
+    try:
+        args, unknown = build_parser().parse_known_args(ours)
+    except cli.ConfigError as e:
+        print(f"sweep.py: error: {e}", file=sys.stderr)
+        return 2
     args.flags, args.argv = unknown + after, argv
     try:
         check_passthrough(args.flags)  # first: --stauts is a typo of --status, whatever else is on the line
@@ -1237,11 +1254,69 @@ def inside_sweep(args) -> None:
 
 
 def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) -> int:
+    """The jobs neither done nor running elsewhere: run here (then the report) or submitted to SLURM;
+    --dry-run prints them. 0 when every job run here finished, 1 if one failed."""
     sweep_dir = os.path.join(args.out, args.sweep)
     dirs = {spec: os.path.abspath(os.path.join(sweep_dir, spec.name)) for spec in specs}
     done = [s for s in specs if is_done(dirs[s])]
     busy = [s for s in specs if s not in done and alive(read_json(os.path.join(dirs[s], "lock"))) is not False]
     todo = [s for s in specs if s not in done and s not in busy]
+    gpus, mem_gb, parallel, where = resources(args, engine, why, todo)
+    shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
+            f"{len({s.seed for s in specs})} seeds"
+    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running elsewhere, "
+          f"{len(todo)} to run ({where})", flush=True)
+    if args.dry_run:
+        for s in todo:
+            print(f"{s.name}: sear.py {shlex.join(s.args)}")
+        return 0
+    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs, engine)
+    if held > 1:
+        print(f"note: {sweep_dir} now holds {held} sweeps (other grids or sear.py flags); --status and --report "
+              f"then need the sweep's flags after -- to pick one")
+    metric = grid.metric if grid else None
+    if not todo:
+        if engine == "local" and not busy:
+            report(args.out, args.sweep, specs, metric)
+        return 0
+    jobs = {spec: new_job(dirs[spec], spec, args.threads) for spec in todo}
+    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
+    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
+        import cloudpickle                # they need no `import sweep` from whatever their cwd is
+        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
+    if engine != "local":  # one SLURM array; this process only submits
+        return submit(executor, jobs, dirs, mem_gb, engine, sweep_dir)
+    driver = whoami()
+    for spec in todo:
+        mark_queued(dirs[spec], driver)
+    try:
+        results = run_local(executor, jobs, parallel, job_devices(gpus, local_gpus(), parallel))
+    except KeyboardInterrupt:
+        print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
+              "interrupted ones resume from their last snapshot)", file=sys.stderr)
+        return 130
+    return finished_here(args, specs, metric, results)
+
+
+def finished_here(args, specs: list[JobSpec], metric: str | None, results: dict) -> int:
+    """After the jobs run here: how many finished, and the report. 1 if one failed."""
+    failed = [s for s, r in results.items() if r.startswith(("failed", "interrupted"))]
+    print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
+          + (f"; {len(failed)} failed (see --status)" if failed else ""))
+    report(args.out, args.sweep, specs, metric)
+    return 1 if failed else 0
+
+
+def new_job(job_dir: str, spec: JobSpec, threads: int) -> SearJob:
+    """A job's folder with its job.json, and the job."""
+    os.makedirs(job_dir, exist_ok=True)
+    write_json(os.path.join(job_dir, "job.json"), dataclasses.asdict(spec))
+    return SearJob(job_dir, spec.args, spec.resume_args, threads, script=SEAR_PY)
+
+
+def resources(args, engine: str, why: str, todo: list[JobSpec]) -> tuple:
+    """(GPUs per job, memory per job in GB, jobs at a time here, where they run) of the jobs to run,
+    after the lines that say which engine and how much memory."""
     part = slurm_partition(args.partition) if engine == "slurm" else None
     check_cpus(args, part)
     gpus, gpu_note = job_gpus(args, engine, part)
@@ -1256,57 +1331,18 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) ->
             mem_line, parallel = mem_line + f", room for {fit} at a time", fit
     if mem_line:
         print(mem_line)
-    shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
-            f"{len({s.seed for s in specs})} seeds"
     where = f"{engine}, {parallel} at a time, {args.threads} thread(s) each" if engine == "local" else engine
-    where += f", {gpu_note}"
-    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running elsewhere, "
-          f"{len(todo)} to run ({where})", flush=True)
-    if args.dry_run:
-        for s in todo:
-            print(f"{s.name}: sear.py {shlex.join(s.args)}")
-        return 0
-    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs, engine)
-    if held > 1:
-        print(f"note: {sweep_dir} now holds {held} sweeps (other grids or sear.py flags); --status and --report "
-              f"then need the sweep's flags after -- to pick one")
-    if not todo:
-        if engine == "local" and not busy:
-            report(args.out, args.sweep, specs, grid.metric if grid else None)
-        return 0
+    return gpus, mem_gb, parallel, f"{where}, {gpu_note}"
 
-    jobs, driver = {}, whoami()
-    for spec in todo:
-        d = dirs[spec]
-        os.makedirs(d, exist_ok=True)
-        write_json(os.path.join(d, "job.json"), dataclasses.asdict(spec))
-        jobs[spec] = SearJob(d, spec.args, spec.resume_args, args.threads, script=SEAR_PY)
-    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
-    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
-        import cloudpickle                # they need no `import sweep` from whatever their cwd is
-        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
 
-    if engine != "local":  # one SLURM array; this process only submits
-        submitted = submit_array(executor, [jobs[spec] for spec in todo], mem_gb)
-        for spec, job in zip(todo, submitted):
-            mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
-        print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with "
-              f"--status, draw the curves with --report; logs in {sweep_dir}/<job>/")
-        return 0
-
-    for spec in todo:
-        mark_queued(dirs[spec], driver)
-    try:
-        results = run_local(executor, jobs, parallel, job_devices(gpus, local_gpus(), parallel))
-    except KeyboardInterrupt:
-        print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
-              "interrupted ones resume from their last snapshot)", file=sys.stderr)
-        return 130
-    failed = [s for s, r in results.items() if r.startswith(("failed", "interrupted"))]
-    print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
-          + (f"; {len(failed)} failed (see --status)" if failed else ""))
-    report(args.out, args.sweep, specs, grid.metric if grid else None)
-    return 1 if failed else 0
+def submit(executor, jobs: dict, dirs: dict, mem_gb, engine: str, sweep_dir: str) -> int:
+    """The jobs as one SLURM array; each job folder records its array task."""
+    submitted = submit_array(executor, list(jobs.values()), mem_gb)
+    for spec, job in zip(jobs, submitted):
+        mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
+    print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with "
+          f"--status, draw the curves with --report; logs in {sweep_dir}/<job>/")
+    return 0
 
 
 if __name__ == "__main__":
