@@ -1,4 +1,4 @@
-"""A researcher's first week (issue 21), at the command line: one owner per run directory, storage
+"""A researcher's first week, at the command line: one owner per run directory, storage
 errors in one line, SIGTERM, resume and mask-model inputs, --evaluate, misspelled flags and start-up
 warnings. Every test drives `python sear.py ...` (tiny budgets, CPU) and looks only at what a user
 sees: exit codes, stderr, the files of the run directory."""

@@ -89,7 +89,7 @@ def test_folder_round_trip_and_train_cli(tmp_path, capsys):
 
 
 def test_train_refuses_a_model_below_the_iou_floor_unless_forced(tmp_path, capsys):
-    """The issue's case: a model that finds no robot (IoU ~0 after 1 step) is one line, exit 2, no file;
+    """The case that set the floor: a model that finds no robot (IoU ~0 after 1 step) is one line, exit 2, no file;
     --force writes it and the file records that it was forced below the floor."""
     images, masks = shapes(10)
     segment.write_folder(str(tmp_path / "labels"), images, masks)
