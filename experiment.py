@@ -1,12 +1,13 @@
 """What sear.py's training loop calls besides the algorithm: the envs a config describes, the run
-directory (config.json, train.csv / eval.csv and TensorBoard, snapshots with the replay buffer beside
-them, resume and its side files, one owner at a time, atomic writes and storage errors in one line,
-what a Ctrl-C or SIGTERM leaves), the progress line and its ETA, the health checks of every update
-(docs/health.md), the evaluation's decoder metrics and videos, --evaluate's scores, the background
-sampler, and transfer (--init-from).
+directory (config.json, train.csv / eval.csv and TensorBoard, snapshots with the replay buffer
+beside them, resume and its side files, one owner at a time, atomic writes and storage errors in one
+line, what a Ctrl-C or SIGTERM leaves), the progress line and its ETA, the health checks of every
+update (docs/health.md), the evaluation's decoder metrics and videos, --evaluate's scores, the
+background sampler, and transfer (--init-from).
 
 Layering: imports cli.py, and lazily envs.py and segment.py (so that `import sear` needs only torch,
-numpy and the standard library); never sear.py, whose agent, buffer and config it receives as arguments.
+numpy and the standard library); never sear.py, whose agent, buffer and config it receives as
+arguments.
 """
 from __future__ import annotations
 
@@ -39,29 +40,39 @@ from cli import arg, storing, torch_save, write_atomically
 # ================================================================================================
 @dataclass
 class EnvConfig:
-    """The envs' settings of sear.Config (which inherits them): masks, Distracting Control, rendering."""
+    """The envs' settings of sear.Config (which inherits them): masks, Distracting Control,
+    rendering."""
     mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
-    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian blur (sigma 0.5), "
-                                   "threshold 0.9 (envs.approximate_mask)")
-    mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride (authors')",
+    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian "
+                                   "blur (sigma 0.5), threshold 0.9 (envs.approximate_mask)")
+    mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) "
+                                           "| stride (authors')",
                                ("majority", "stride"))
-    mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
-                                  "applied to every frame gives every mask target and RGBM's input mask; "
-                                  "--mask-noise / --mask-approx then corrupt its masks)")
-    learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's mask in evaluation "
-                                       "episodes only to report the learned masks' IoU (eval.csv learned_mask_iou), "
-                                       "never as a target; --no-learned-mask-iou never renders one")
-    backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py --fetch-davis), a "
-                               "DAVIS or image folder, or '' = built-in procedural images (not the paper's)")
-    difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all backgrounds (authors: medium)",
+    mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a "
+                                  "segment.py model applied to every frame gives every mask target "
+                                  "and RGBM's input mask; --mask-noise / --mask-approx then "
+                                  "corrupt its masks)")
+    learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's "
+                                       "mask in evaluation episodes only to report the learned "
+                                       "masks' IoU (eval.csv learned_mask_iou), never as a target; "
+                                       "--no-learned-mask-iou never renders one")
+    backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py "
+                               "--fetch-davis), a DAVIS or image folder, or '' = built-in "
+                               "procedural images (not the paper's)")
+    difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all "
+                                    "backgrounds (authors: medium)",
                           ("easy", "medium", "hard"))
-    render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)",
+    render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no "
+                                       "multisampling)",
                               ("paper", "fast"))
-    pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, under DrQ-v2's "
-                                     "curves: 0.8% less about the hinge)", ("exact", "2021"))
-    camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: 0.1-0.3)")
-    color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: 0.1-0.3)")
-    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per episode)",
+    pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, "
+                                     "under DrQ-v2's curves: 0.8% less about the hinge)", ("exact", "2021"))
+    camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset "
+                                         "scale (original: 0.1-0.3)")
+    color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift "
+                                        "(original: 0.1-0.3)")
+    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their "
+                                       "6 views per episode)",
                               ("fixed", "random"))
 
 
@@ -104,11 +115,13 @@ def other_robot_warning(cfg, meta: dict) -> str | None:
         return None
     if robot is None or robot == here:
         return None
-    return (f"--mask-source: the mask model was trained on {trained_env or 'frames'} (robot: {robot}), but "
-            f"{cfg.env}'s robot is {here}: its masks will miss the robot (eval.csv learned_mask_iou shows how far)")
+    return (f"--mask-source: the mask model was trained on {trained_env or 'frames'} (robot: "
+            f"{robot}), but {cfg.env}'s robot is {here}: its masks will miss the robot (eval.csv "
+            "learned_mask_iou shows how far)")
 
 
-EVAL_SEED = 100_000  # the eval env's seed and its episodes' reset seeds are the run's seed + this: apart from training's
+# the eval env's seed and its episodes' reset seeds are the run's seed + this: apart from training's
+EVAL_SEED = 100_000
 
 
 def make_envs(cfg, uses_mask: bool, train=True):
@@ -164,8 +177,8 @@ def episode_seed(seed, episode):
 
 
 def eval_tasks(env, cfg) -> list:
-    """The task of every evaluation episode: None (the env's own draw) --eval-episodes times, or for a
-    task set k episodes of each task, task after task (k = --eval-episodes-per-task, by default
+    """The task of every evaluation episode: None (the env's own draw) --eval-episodes times, or for
+    a task set k episodes of each task, task after task (k = --eval-episodes-per-task, by default
     ceil(--eval-episodes / tasks): at least --eval-episodes in all). The authors evaluate task sets
     on 10 episodes of random tasks; per-task numbers need every task."""
     tasks = getattr(env.unwrapped, "tasks", None)
@@ -196,20 +209,22 @@ class EvalWatch:
 
     Every SCORE_EVERY-th observation the env returns (counting each reset and step of all evaluation
     episodes) is encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its
-    newest frame is scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per pixel, where
-    the env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so with
-    --mask-noise or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1] image,
-    after the [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a video
-    path the first episode is also written as an MP4, the panels side by side: camera | true mask |
-    predicted mask (the sigmoid, grey) | reconstruction, each only where the method has it. A method
-    without decoders and without a video has its observations passed through untouched."""
+    newest frame is scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per
+    pixel, where the env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so
+    with
+    --mask-noise or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1]
+    image, after the [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a
+    video path the first episode is also written as an MP4, the panels side by side: camera | true
+    mask | predicted mask (the sigmoid, grey) | reconstruction, each only where the method has it. A
+    method without decoders and without a video has its observations passed through untouched."""
 
     BATCH = 32
     # Encoding and decoding a frame again costs about half of a fast-render evaluation step on CPU
     # (EXPERIMENTS.md, "Inspection"); neighbouring frames differ little, so a tenth of them (~500
     # frames per default evaluation) gives the same means at a tenth of the cost.
     SCORE_EVERY = 10
-    SCALE = 4  # nearest upscaling, 84 -> 336 px: visible, and a multiple of ffmpeg's 16-px macro blocks
+    # nearest upscaling, 84 -> 336 px: visible, and a multiple of ffmpeg's 16-px macro blocks
+    SCALE = 4
     LABEL = 16  # height of the strip that names the panels (336 + 16 = 22 x 16 again)
     FPS = 20
     METRICS = ("mask_iou", "mask_bce", "recon_psnr")
@@ -217,8 +232,10 @@ class EvalWatch:
     def __init__(self, agent, env, video_path: str | None = None):
         self.agent, self.env, self.video_path = agent, env, video_path
         self.decodes = agent.aux.decodes if agent.aux is not None else ()
-        self.true_mask = agent.method.uses_mask  # mask-free methods' envs skip the segmentation render
+        # mask-free methods' envs skip the segmentation render
+        self.true_mask = agent.method.uses_mask
         self.pending, self.values, self.episode, self.seen, self.video = [], {}, -1, 0, None
+        self.label_strip = None  # the panels' names, drawn when the video starts
 
     def __getattr__(self, name):  # everything else (spaces, close, ...) is the env's
         return getattr(self.env, name)
@@ -264,7 +281,8 @@ class EvalWatch:
             logits = decoded["mask"][:, -1].float()
             panels["predicted mask"] = torch.sigmoid(logits)
             if self.true_mask:
-                self.add("mask_iou", mask_iou(logits > 0, true)[scored])  # sigmoid > 0.5 <=> logit > 0
+                # sigmoid > 0.5 <=> logit > 0
+                self.add("mask_iou", mask_iou(logits > 0, true)[scored])
                 bce = F.binary_cross_entropy_with_logits(logits, true, reduction="none")
                 self.add("mask_bce", bce.flatten(1).mean(1)[scored])
         if "recon" in decoded:
@@ -274,11 +292,13 @@ class EvalWatch:
             with storing(self.video_path):
                 self.film(panels, np.flatnonzero(filming))
 
-    def add(self, name, per_frame: torch.Tensor):  # only the frames to score: films are decoded whole
+    # only the frames to score: films are decoded whole
+    def add(self, name, per_frame: torch.Tensor):
         self.values.setdefault(name, []).extend(per_frame.tolist())
 
     def film(self, panels: dict, rows):
-        """Append frames `rows` of the batch to the video: panels side by side, upscaled, labelled."""
+        """Append frames `rows` of the batch to the video: panels side by side, upscaled,
+        labelled."""
         import imageio.v2 as imageio  # imageio-ffmpeg brings the ffmpeg binary; needed only here
         width = panels["camera"].shape[-1] * self.SCALE
         if self.video is None:
@@ -291,13 +311,14 @@ class EvalWatch:
         strip = (torch.cat(side, dim=3)[rows] * 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
         for frame in strip:
             big = frame.repeat(self.SCALE, axis=0).repeat(self.SCALE, axis=1)
-            for k in range(1, len(panels)):  # a white rule between panels, drawn over their edge pixels
+            # a white rule between panels, drawn over their edge pixels
+            for k in range(1, len(panels)):
                 big[:, k * width - 1:k * width + 1] = 255
             self.video.append_data(np.concatenate([self.label_strip, big], axis=0))
 
     def finish(self) -> dict:
-        """Score the frames still pending and close the video. Returns the metrics' means over frames
-        (for the IoU, over the frames where robot or prediction is present)."""
+        """Score the frames still pending and close the video. Returns the metrics' means over
+        frames (for the IoU, over the frames where robot or prediction is present)."""
         self.flush()
         if self.video is not None:
             with storing(self.video_path):
@@ -312,7 +333,8 @@ class EvalWatch:
 
 
 def label_strip(labels: list[str], panel_width: int, height: int) -> np.ndarray:
-    """A black strip (height, panel_width * len(labels), 3) uint8 with each panel's name in white."""
+    """A black strip (height, panel_width * len(labels), 3) uint8 with each panel's name in
+    white."""
     from PIL import Image, ImageDraw
     strip = Image.new("RGB", (panel_width * len(labels), height))
     draw = ImageDraw.Draw(strip)
@@ -339,22 +361,24 @@ def eval_columns(episodes) -> dict:
 # --evaluate: a snapshot scored on its eval env, nothing written but a new video
 # ================================================================================================
 def load_agent(agent, state: dict, cfg, flag: str) -> None:
-    """A snapshot's agent state into `agent`. One that this sear.py cannot take (a curl run from before
-    CURL followed curl_sac.py: its networks differ) is one line."""
+    """A snapshot's agent state into `agent`. One that this sear.py cannot take (a curl run from
+    before CURL followed curl_sac.py: its networks differ) is one line."""
     try:
         agent.load_state_dict(state)
-    except (RuntimeError, KeyError, ValueError) as e:  # names, shapes or optimiser groups that differ
+    # names, shapes or optimiser groups that differ
+    except (RuntimeError, KeyError, ValueError) as e:
         first = str(e).strip().splitlines()[0][:120] if str(e).strip() else type(e).__name__
-        raise cli.ConfigError(f"{flag}: the snapshot's {cfg.method} networks do not fit this sear.py's (saved by "
-                              f"an older version?): {first}") from None
+        raise cli.ConfigError(f"{flag}: the snapshot's {cfg.method} networks do not fit this "
+                              f"sear.py's (saved by an older version?): {first}") from None
 
 
 def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate) -> None:
-    """--evaluate RUN_DIR: `agent`, given the snapshot's weights, on the run's eval env for --eval-episodes
-    episodes by sear.evaluate, with the evaluations' own reset seeds (the run's episode count gives
-    eval.csv's row at the snapshot's frame again). Prints the mean return (and success) with 95% CIs
-    over the episodes, and the decoder metrics. Writes nothing into the run but, with --save-video, a
-    new videos/evaluate_<frame>[-k].mp4. Takes no lock: a running run can be scored."""
+    """--evaluate RUN_DIR: `agent`, given the snapshot's weights, on the run's eval env for
+    --eval-episodes episodes by sear.evaluate, with the evaluations' own reset seeds (the run's
+    episode count gives eval.csv's row at the snapshot's frame again). Prints the mean return (and
+    success) with 95% CIs over the episodes, and the decoder metrics. Writes nothing into the run
+    but, with --save-video, a new videos/evaluate_<frame>[-k].mp4. Takes no lock: a running run can
+    be scored."""
     load_agent(agent, snapshot["agent"], cfg, "--evaluate")
     for message in cli.start_warnings(cfg, run, training=False):
         cli.warn(message)
@@ -362,8 +386,8 @@ def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate
     frame = step * cfg.action_repeat
     video = claim_video(run.evaluate, frame) if run.save_video else None
     n = len(eval_tasks(env, cfg))
-    print(f"evaluating {run.evaluate} (snapshot at frame {frame}) on {cfg.env}: {n} episode{'s' * (n != 1)}, "
-          f"device {agent.device}", flush=True)
+    print(f"evaluating {run.evaluate} (snapshot at frame {frame}) on {cfg.env}: {n} "
+          f"episode{'s' * (n != 1)}, device {agent.device}", flush=True)
     watch = EvalWatch(agent, env, video)
     try:
         episodes = evaluate(agent, watch, cfg, step)
@@ -385,7 +409,8 @@ def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate
     if successes:
         print("success " + rate_ci(successes))
     for name, value in {**{k: v for k, v in eval_columns(episodes).items() if "/" in k}, **scores}.items():
-        print(f"  {name} {value:.3g}")  # task sets: return/<task>, success/<task>; the decoder metrics
+        # task sets: return/<task>, success/<task>; the decoder metrics
+        print(f"  {name} {value:.3g}")
     if video:
         print(f"video: {video}")
 
@@ -427,13 +452,14 @@ def rate_ci(values) -> str:
 # ================================================================================================
 # The replay buffer: where it lives, its sampler thread and its file
 # ================================================================================================
-GPU_HEADROOM = 10 * 2**30  # GPU memory left to the updates beside a replay there (SEAR at batch 256 and more)
+# GPU memory left to the updates beside a replay there (SEAR at batch 256 and more)
+GPU_HEADROOM = 10 * 2**30
 
 
 def replay_device(run, device: torch.device, replay_bytes: int) -> torch.device:
-    """--replay-device: where the replay ring lives. auto: on the run's GPU when the whole ring fits in its
-    free memory with GPU_HEADROOM to spare (batches are then built there), else on the host (one line says
-    why, on a GPU); cpu, or the run's device, as given."""
+    """--replay-device: where the replay ring lives. auto: on the run's GPU when the whole ring fits
+    in its free memory with GPU_HEADROOM to spare (batches are then built there), else on the host
+    (one line says why, on a GPU); cpu, or the run's device, as given."""
     if run.replay_device != "auto":
         return torch.device(run.replay_device)
     if device.type != "cuda":
@@ -441,8 +467,9 @@ def replay_device(run, device: torch.device, replay_bytes: int) -> torch.device:
     free, _ = torch.cuda.mem_get_info(device)
     if replay_bytes + GPU_HEADROOM <= free:
         return device
-    print(f"replay: {size(replay_bytes)} does not fit on {device} ({size(free)} free, {size(GPU_HEADROOM)} kept for "
-          f"the updates): on the host, each batch copied over (--replay-device cpu says so quietly)")
+    print(f"replay: {size(replay_bytes)} does not fit on {device} ({size(free)} free, "
+          f"{size(GPU_HEADROOM)} kept for the updates): on the host, each batch copied over "
+          "(--replay-device cpu says so quietly)")
     return torch.device("cpu")
 
 
@@ -450,18 +477,19 @@ def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device)
     """The background sampler of --prefetch (on by default when a CUDA run keeps its replay on the
     host), or None: the loop samples."""
     if run.prefetch == "on" or (run.prefetch == "auto" and device.type == "cuda" and buffer.device.type == "cpu"):
-        # While the thread reads a batch, the loop writes up to 2 x update_every steps and a reset over
-        # the oldest slots of a full ring: episodes starting there are not drawn.
+        # While the thread reads a batch, the loop writes up to 2 x update_every steps and a reset
+        # over the oldest slots of a full ring: episodes starting there are not drawn.
         return Prefetcher(buffer, cfg.batch_size, rng, device, margin=cfg.frame_stack + 2 * cfg.update_every)
     return None
 
 
 class Prefetcher:
     """Replay sampling and the host->device copy of the next batch, in a background thread while the
-    current update runs (--prefetch; on by default with CUDA and a replay on the host, where the update
-    would otherwise wait for the host). Ahead of the loop: a batch is drawn two updates before it is used
-    (an episode that ends reaches the batches 2 x update_every steps later than without it), and the
-    sampling RNG runs ahead of the loop. On CUDA the copy goes from pinned memory on its own stream."""
+    current update runs (--prefetch; on by default with CUDA and a replay on the host, where the
+    update would otherwise wait for the host). Ahead of the loop: a batch is drawn two updates
+    before it is used (an episode that ends reaches the batches 2 x update_every steps later than
+    without it), and the sampling RNG runs ahead of the loop. On CUDA the copy goes from pinned
+    memory on its own stream."""
 
     def __init__(self, buffer, batch_size: int, rng: np.random.Generator, device: torch.device, margin: int):
         self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
@@ -471,13 +499,14 @@ class Prefetcher:
         self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
 
     def can_sample(self):
-        """What the loop asks before an update: an episode this thread can draw (the `margin` oldest slots
-        of the ring, which the loop may overwrite while this thread reads, left out)."""
+        """What the loop asks before an update: an episode this thread can draw (the `margin` oldest
+        slots of the ring, which the loop may overwrite while this thread reads, left out)."""
         return self.buffer.can_sample(self.margin)
 
     def sample(self):
-        """buffer.sample() without the `margin` oldest slots; None while no episode can be drawn (in a ring
-        of about two episodes the loop may have overwritten the only one: the loop's next can_sample() waits)."""
+        """buffer.sample() without the `margin` oldest slots; None while no episode can be drawn (in
+        a ring of about two episodes the loop may have overwritten the only one: the loop's next
+        can_sample() waits)."""
         return self.buffer.sample(self.batch_size, self.rng, self.margin)
 
     def _produce(self):
@@ -505,7 +534,8 @@ class Prefetcher:
         batch, event = self.queue.get()
         if isinstance(batch, Exception):
             raise batch
-        if event is not None:  # the update's stream waits for the copy, and owns the tensors after it
+        # the update's stream waits for the copy, and owns the tensors after it
+        if event is not None:
             current = torch.cuda.current_stream(self.device)
             event.wait(current)
             for x in batch:
@@ -533,7 +563,8 @@ def load_buffer(buffer, path):
     with np.load(path) as data:
         n = len(data["rewards"])
         if n > buffer.capacity:
-            raise cli.ConfigError(f"saved buffer holds {n} transitions, more than --replay-size {buffer.capacity}")
+            raise cli.ConfigError(f"saved buffer holds {n} transitions, more than --replay-size "
+                                  f"{buffer.capacity}")
         buffer.load_arrays(data)
 
 
@@ -548,34 +579,38 @@ def saved_buffer_t(path):
 # ================================================================================================
 def init_source(cfg, run, action_dim):
     """The agent state of the --init-from run, checked against this run (its config was checked by
-    cli.parse_args; the action size is known once the env is built). Called before the run dir exists."""
+    cli.parse_args; the action size is known once the env is built). Called before the run dir
+    exists."""
     state = cli.load_snapshot(run.init_from, "--init-from", mmap=True)
     if run.init_parts == "all":
         # The actor's last layer maps to the actions: its output size is the source's action size.
         source_dim = [v for k, v in state["agent"]["actor"].items() if k.endswith(".weight")][-1].shape[0]
         if source_dim != action_dim:
-            raise cli.ConfigError(f"--init-parts all: the source run's actor has {source_dim} actions, {cfg.env} "
-                                  f"has {action_dim}; copy encoder or encoder+decoders instead")
+            raise cli.ConfigError(f"--init-parts all: the source run's actor has {source_dim} "
+                                  f"actions, {cfg.env} has {action_dim}; copy encoder or "
+                                  "encoder+decoders instead")
     return state["agent"]
 
 
 def copy_parts(agent, source: dict, parts: str) -> None:
-    """Load `parts` of a saved agent state (a snapshot's "agent") into a freshly built agent; the other
-    networks keep their fresh initialisation and the optimisers stay fresh (Adam's moments are
+    """Load `parts` of a saved agent state (a snapshot's "agent") into a freshly built agent; the
+    other networks keep their fresh initialisation and the optimisers stay fresh (Adam's moments are
     empty; the loads write into the parameters the optimisers already hold). "aux" is the method's
     auxiliary networks: SEAR's two decoders, AE's and MAE's decoder, CURL's W and key encoder;
     drq and rgbm have none. As in the authors' load_pretrained_weights, the target critic starts as
     a copy of the loaded critic."""
     names = cli.INIT_PARTS[parts]
     agent.encoder.load_state_dict(source["encoder"])
-    if agent.aux is not None and "aux" in names:  # an aux's own optimiser and counter (CURL's) stay fresh
+    # an aux's own optimiser and counter (CURL's) stay fresh
+    if agent.aux is not None and "aux" in names:
         fresh = {k: v for k, v in agent.aux.state_dict().items() if k.endswith("_extra_state")}
         agent.aux.load_state_dict({**source["aux"], **fresh})
     if "actor" in names:
         agent.actor.load_state_dict(source["actor"])
         agent.critic.load_state_dict(source["critic"])
         agent.critic_target.load_state_dict(agent.critic.state_dict())
-    if hasattr(agent.aux, "key"):  # CURL's momentum key starts as a copy of what was loaded, as the target critic
+    # CURL's momentum key starts as a copy of what was loaded, as the target critic
+    if hasattr(agent.aux, "key"):
         agent.aux.key.load_state_dict(agent.aux.query[0].state_dict())
 
 
@@ -595,7 +630,8 @@ def claim_new_path(base, suffix, make) -> str:
 
 
 class RunLock:
-    """One owner per run directory: an exclusive flock on RUN_DIR/run.lock, taken by a new run and by
+    """One owner per run directory: an exclusive flock on RUN_DIR/run.lock, taken by a new run and
+    by
     --resume before they write anything and held until the run ends. The kernel drops a flock when
     its process dies, however it dies (kill -9, OOM, a lost node), so a leftover file never blocks;
     the file holds the owner's pid and host, for the message of a process that is refused
@@ -606,7 +642,8 @@ class RunLock:
         try:
             import fcntl
         except ImportError:  # not a POSIX system
-            cli.warn(f"cannot lock {run_dir} on this system: nothing stops a second process using it")
+            cli.warn(f"cannot lock {run_dir} on this system: nothing stops a second process using "
+                     "it")
             return
         with storing(self.path):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -615,11 +652,13 @@ class RunLock:
         except BlockingIOError:
             owner = cli.lock_holder(fd)
             os.close(fd)
-            raise cli.ConfigError(f"'{run_dir}' is in use by {owner}: a run directory has one owner; wait for it "
-                                  f"to end, or stop it, then resume") from None
-        except OSError as e:  # a file system without flock (Lustre mounted without -o flock: ENOSYS)
+            raise cli.ConfigError(f"'{run_dir}' is in use by {owner}: a run directory has one "
+                                  f"owner; wait for it to end, or stop it, then resume") from None
+        # a file system without flock (Lustre mounted without -o flock: ENOSYS)
+        except OSError as e:
             os.close(fd)
-            cli.warn(f"cannot lock {self.path} ({e.strerror}): nothing stops a second process using this run")
+            cli.warn(f"cannot lock {self.path} ({e.strerror}): nothing stops a second process "
+                     "using this run")
             return
         self.fd = fd
         with storing(self.path):
@@ -699,8 +738,8 @@ def size(n: float) -> str:
 
 
 def snapshot_bytes(agent) -> int:
-    """The size of snapshot.pt at its largest, from the agent's tensors: every network's state and, for
-    each parameter an optimiser trains, Adam's two moments (there from the first update on). RNG
+    """The size of snapshot.pt at its largest, from the agent's tensors: every network's state and,
+    for each parameter an optimiser trains, Adam's two moments (there from the first update on). RNG
     states, counters and config add kilobytes."""
     networks = sum(t.numel() * t.element_size() for part in agent.state_dict().values() if part
                    for t in part.values() if torch.is_tensor(t))
@@ -710,7 +749,8 @@ def snapshot_bytes(agent) -> int:
 
 
 def save_snapshot(run_dir, payload):
-    """Write snapshot.pt atomically: a crash or a full disk mid-write leaves the previous snapshot intact."""
+    """Write snapshot.pt atomically: a crash or a full disk mid-write leaves the previous snapshot
+    intact."""
     write_atomically(os.path.join(run_dir, "snapshot.pt"), lambda f: torch_save(payload, f))
 
 
@@ -732,8 +772,8 @@ def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, c
     if snapshot_frame == frame:
         return f"{head}: snapshot.pt holds this frame; {resume}"
     if snapshot_frame is not None:
-        return (f"{head}: the last snapshot (frame {snapshot_frame}) stands, the {frame - snapshot_frame} "
-                f"frames after it will be re-run; {resume}")
+        return (f"{head}: the last snapshot (frame {snapshot_frame}) stands, the "
+                f"{frame - snapshot_frame} frames after it will be re-run; {resume}")
     first = f"the first is written at the first episode end after {snapshot_minutes:g} minutes"
     if removed:
         return f"{head}, before its first snapshot ({first}): nothing to resume, so {run_dir} was removed"
@@ -755,8 +795,8 @@ def duration(seconds: float) -> str:
 
 class Progress:
     """The live line: frame, speed, ETA, what the loop is doing (an episode, or which evaluation
-    episode) and any health warning. On a terminal it is rewritten in place (at least once a second);
-    otherwise (CI logs, nohup) a line is printed every `every` seconds.
+    episode) and any health warning. On a terminal it is rewritten in place (at least once a
+    second); otherwise (CI logs, nohup) a line is printed every `every` seconds.
 
     `fps` is the speed since the last episode end, less the evaluations and snapshots in between
     (pause()): train.csv's fps. The ETA counts only what it has measured for what it predicts: the
@@ -765,7 +805,11 @@ class Progress:
     left at their measured length. Until it has both (MEASURE_UPDATES updates over MEASURE_SECONDS,
     one evaluation or part of one) it says "measuring". A resumed run starts from the speeds its
     snapshot kept (state()) until it has measured its own. When the learning speed is first measured
-    one line says what the rest of the run costs on this device (cost())."""
+    one line says what the rest of the run costs on this device (cost()).
+
+    It also keeps the longest training episode (frames, and seconds less the pauses) and the longest
+    evaluation episode: how long a first SIGTERM waits at most (episode_bound(),
+    eval_episode_bound())."""
 
     WIDTH = 120
     WARMUP = 2             # the first updates also build the kernels (oneDNN, cuDNN): not timed
@@ -786,9 +830,35 @@ class Progress:
         self.window_start, self.window_frame = clock(), 0
         self.flags: list[str] = []  # health warnings, shown at the end of every line
         self.cost_said = False
+        # The longest episodes of this process and of the snapshot's (see_episode,
+        # see_eval_episode).
+        self.longest = {name: self.saved.get(name) or 0
+                        for name in ("episode_frames", "episode_seconds", "eval_episode_seconds")}
 
     def restart_window(self, frame):
         self.window_start, self.window_frame = self.clock(), frame
+
+    def see_episode(self, frame):
+        """A training episode ended at `frame` (before restart_window): its frames and seconds."""
+        longest = self.longest
+        longest["episode_frames"] = max(longest["episode_frames"], frame - self.window_frame)
+        longest["episode_seconds"] = max(longest["episode_seconds"], self.clock() - self.window_start)
+
+    def see_eval_episode(self, seconds):
+        self.longest["eval_episode_seconds"] = max(self.longest["eval_episode_seconds"], seconds)
+
+    def episode_bound(self) -> float | None:
+        """Seconds a training episode takes at most, as measured: the longest one yet, or the most
+        frames an episode has had at the slowest speed measured, the learning speed's or the episode
+        under way's (the seed phase's episodes, without updates, are much faster)."""
+        speeds = [self.learning_fps() or math.inf, self.fps if self.tick_frame > self.window_frame else math.inf]
+        slowest = min(speeds)
+        frames = self.longest["episode_frames"] / slowest if slowest and math.isfinite(slowest) else 0.0
+        return max(self.longest["episode_seconds"], frames) or None
+
+    def eval_episode_bound(self) -> float | None:
+        """Seconds an evaluation episode takes at most, as measured: the longest one yet."""
+        return self.longest["eval_episode_seconds"] or None
 
     def pause(self, seconds):
         """`seconds` spent off training (an evaluation, a snapshot): not counted in any speed."""
@@ -810,18 +880,20 @@ class Progress:
         return self.updates >= self.WARMUP + self.MEASURE_UPDATES and self.learn_seconds >= self.MEASURE_SECONDS
 
     def learning_fps(self) -> float | None:
-        """Frames per second of training with updates: this process's once measured, else the saved one."""
+        """Frames per second of training with updates: this process's once measured, else the saved
+        one."""
         return self.learn_frames / self.learn_seconds if self.measured() else self.saved.get("learning_fps")
 
     def eval_length(self, eval_done=0.0, eval_spent=0.0) -> float | None:
-        """Seconds per evaluation: this process's, else the one under way extrapolated, else the saved one."""
+        """Seconds per evaluation: this process's, else the one under way extrapolated, else the
+        saved one."""
         if self.eval_seconds:
             return float(np.mean(self.eval_seconds))
         return eval_spent / eval_done if eval_done > 0 else self.saved.get("eval_seconds")
 
     def state(self) -> dict:
-        """The speeds a snapshot keeps for the ETA of the next start."""
-        return {"learning_fps": self.learning_fps(), "eval_seconds": self.eval_length()}
+        """The speeds a snapshot keeps for the ETA of the next start, and the longest episodes."""
+        return {"learning_fps": self.learning_fps(), "eval_seconds": self.eval_length(), **self.longest}
 
     def evals_left(self, next_eval):
         """Scheduled evaluations before the end of the budget (the one due now included), plus the
@@ -840,18 +912,21 @@ class Progress:
         return train + (0.0 if evals <= 0 else math.inf if per_eval is None else evals * per_eval)
 
     def cost(self, frame, next_eval) -> str | None:
-        """Once, when this process has first measured its learning speed: what the rest costs here."""
+        """Once, when this process has first measured its learning speed: what the rest costs
+        here."""
         if self.cost_said or not self.measured():
             return None
         self.cost_said = True
         fps, left, evals, per_eval = self.learning_fps(), max(0, self.total - frame), self.evals_left(next_eval), \
             self.eval_length()
-        line = (f"cost on this device: {fps:.3g} frames/s with updates (timed over {self.updates - self.WARMUP} "
-                f"updates), so the {left:,} frames left take {duration(left / fps)}")
+        line = (f"cost on this device: {fps:.3g} frames/s with updates (timed over "
+                f"{self.updates - self.WARMUP} updates), so the {left:,} frames left take "
+                f"{duration(left / fps)}")
         evaluations = f"{evals} evaluation{'s' * (evals != 1)}"
         if per_eval is None:
             return line + f", plus {evaluations} not timed yet"
-        return (line + f", and the {evaluations} left {duration(evals * per_eval)} ({duration(per_eval)} each): "
+        return (line + f", and the {evaluations} left {duration(evals * per_eval)} "
+                       f"({duration(per_eval)} each): "
                 f"about {duration(left / fps + evals * per_eval)} in all")
 
     def update(self, frame, text, eta, force=False):
@@ -859,12 +934,13 @@ class Progress:
         if not force and now - self.last < self.every:
             return
         self.last = now
-        line = (f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {self.fps:.1f} fps | "
-                f"ETA {duration(eta)} | {text}" + "".join(f" | {flag}" for flag in self.flags))
+        line = (f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {self.fps:.1f} "
+                f"fps | ETA {duration(eta)} | {text}" + "".join(f" | {flag}" for flag in self.flags))
         print(("\r" + line.ljust(self.WIDTH)) if self.tty else line, end="" if self.tty else "\n", flush=True)
 
     def say(self, message):
-        """A line of its own (evaluation result, snapshot); on a terminal it replaces the live line."""
+        """A line of its own (evaluation result, snapshot); on a terminal it replaces the live
+        line."""
         print(("\r" + message.ljust(self.WIDTH)) if self.tty else message, flush=True)
 
 
@@ -927,26 +1003,27 @@ class Health:
         saturated, spread = np.mean(self.saturated), np.mean(self.spread)
         if saturated < self.SATURATED or spread > self.SPREAD:
             return None
-        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates {saturated:.1%} of its mean "
-                f"actions sat at exactly +-1 (actor_saturated) and they spread {spread:.2g} over the batch "
-                f"(action_spread): one action in every state, where tanh passes no gradient back. Such runs rarely "
-                f"recover: docs/health.md")
+        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates "
+                f"{saturated:.1%} of its mean actions sat at exactly +-1 (actor_saturated) and "
+                f"they spread {spread:.2g} over the batch (action_spread): one action in every "
+                "state, where tanh passes no gradient back. Such runs rarely recover: "
+                "docs/health.md")
 
     def diverging(self) -> str | None:
         median = float(np.median(self.q)) if len(self.q) == self.DIVERGE_WINDOW else 0.0
         if median <= self.DIVERGE_FACTOR * self.q_bound():
             return None
-        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is {median:.3g}, more "
-                f"than {self.DIVERGE_FACTOR:g} x the largest return any policy can have here ({self.reward_scale:.3g} "
-                f"per step / (1 - {self.discount:g}) = {self.q_bound():.3g}); the run will not learn (too high a "
-                f"--lr?): docs/health.md")
+        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is "
+                f"{median:.3g}, more than {self.DIVERGE_FACTOR:g} x the largest return any policy "
+                f"can have here ({self.reward_scale:.3g} per step / (1 - {self.discount:g}) = "
+                f"{self.q_bound():.3g}); the run will not learn (too high a --lr?): docs/health.md")
 
 
 class FiniteActions:
     """The last guard before the simulator: an action that is not a finite number (an actor whose
-    parameters diverged) stops the run (cli.NonFinite) instead of reaching MuJoCo, where it would end
-    in a PhysicsError traceback. A check of a few floats per step. The outermost wrapper of a run's envs
-    (everything else is the env's), so it needs no gymnasium at import."""
+    parameters diverged) stops the run (cli.NonFinite) instead of reaching MuJoCo, where it would
+    end in a PhysicsError traceback. A check of a few floats per step. The outermost wrapper of a
+    run's envs (everything else is the env's), so it needs no gymnasium at import."""
 
     def __init__(self, env):
         self.env = env
@@ -957,165 +1034,383 @@ class FiniteActions:
     def step(self, action):
         finite = np.isfinite(action)
         if not finite.all():
-            raise cli.NonFinite(f"{int((~finite).sum())} of the {finite.size} entries of the actor's action are not "
-                                f"finite")
+            raise cli.NonFinite(f"{int((~finite).sum())} of the {finite.size} entries of the "
+                                f"actor's action are not finite")
         return self.env.step(action)
 
 
 @dataclass
 class Counters:
-    """Where the training loop stands: what a snapshot records so that a resume continues from it."""
+    """Where the training loop stands: what a snapshot records so that a resume continues from
+    it."""
     step: int = 0               # agent steps taken (frames = steps x action repeat)
     episode: int = 0            # number of the episode under way, or of the next one
-    last_eval_frame: int = -1   # frame of the latest evaluation (the loop's schedule follows from it)
+    # frame of the latest evaluation (the loop's schedule follows from it)
+    last_eval_frame: int = -1
     mid_episode: bool = False   # an episode has begun and not ended
 
 
-class RunDir:
-    """A run directory and everything written into it: config.json, train.csv, eval.csv (and
-    TensorBoard events), snapshot.pt with buffer.npz beside it (--save-buffer), videos/; and what
-    goes to the screen: the progress line, and on Ctrl-C or SIGTERM or a storage error (as a `with`
-    block) one line that says what was saved. Nothing is created before create(). It owns the
-    directory (RunLock) from before its first write to the end of the `with` block; a first SIGTERM
-    in the block waits for a safe point: create(), or safe_point() at an episode end.
+class RunFiles:
+    """A run directory on disk: config.json, train.csv and eval.csv (and TensorBoard events),
+    snapshot.pt with buffer.npz beside it (--save-buffer), the side files of a resume, run.lock; and
+    what a storage error or a kill leaves there. Nothing is created before create(); the directory
+    is owned (RunLock) from before its first write until release()."""
 
-    The loop (sear.train) decides when to evaluate and to snapshot (between episodes, every
-    --snapshot-minutes); RunDir writes what it is handed, and snapshots on its own only on a Ctrl-C
-    between episodes and after the final evaluation. A snapshot holds the agent, the RNG states, the
-    counters and, beside it, the replay buffer; the next episode's reset seed follows from its number,
-    so a resume (with --save-buffer) does exactly what the uninterrupted run would have done."""
-
-    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
+    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None):
         self.cfg, self.run, self.resumed = cfg, run, snapshot
-        self.path = run.resume or None  # a new run's is made by create(): removed if it ends before a snapshot
+        # a new run's is made by create(): removed if it ends before a snapshot
+        self.path = run.resume or None
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
-        self.counters = None  # the loop's, from start()
-        self.pending = []  # the updates' metrics not read from the device yet
-        self.metrics = {}  # the updates' metrics of the episode under way, read
         self.lock = None
+        # open_logs(), once the directory is there
+        self.train_log = self.eval_log = self.writer = None
 
-    @property
-    def frame(self):
-        return self.counters.step * self.cfg.action_repeat if self.counters else self.snapshot_frame or 0
-
-    # --- the directory ---
     def create(self):
-        """Once the envs are made (every input checked): the start-up warnings, then a new run's
-        directory (env__method__seed__time under --run-root), owned, and its config.json; a resumed
-        run has both."""
-        for message in cli.start_warnings(self.cfg, self.run):
-            cli.warn(message)
-        if self.path is None:
-            self.safe_point()  # stopped while the envs were made: nothing to keep
-            self.path = new_run_dir(self.run.run_root, f"{self.cfg.env}__{cli.method_label(self.cfg)}__{self.cfg.seed}")
-            self.lock = RunLock(self.path)
-            self.write_config(cli.config_dict(self.cfg, self.run))
+        """A new run's directory (env__method__seed__time under --run-root), owned, and its
+        config.json."""
+        cfg = self.cfg
+        self.path = new_run_dir(self.run.run_root, f"{cfg.env}__{cli.method_label(cfg)}__{cfg.seed}")
+        self.lock = RunLock(self.path)
+        self.write_config(cli.config_dict(cfg, self.run))
 
     def own(self):
-        """--resume, before anything is written: a second process on this run stops here. A config.json
-        the user moved aside (cli.check_run_config) is written again from the snapshot's copy."""
+        """--resume, before anything is written: a second process on this run stops here. A
+        config.json the user moved aside (cli.check_run_config) is written again from the snapshot's
+        copy."""
         self.lock = RunLock(self.path)
         if not os.path.lexists(os.path.join(self.path, "config.json")):
             self.write_config(self.resumed["config"])
-            print(f"resume: {os.path.join(self.path, 'config.json')} was missing; written again from snapshot.pt")
+            print(f"resume: {os.path.join(self.path, 'config.json')} was missing; written again "
+                  f"from snapshot.pt")
 
     def write_config(self, config: dict):
-        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2), mode="w")
+        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2),
+                         mode="w")
+
+    def open_logs(self):
+        self.train_log = CsvLog(os.path.join(self.path, "train.csv"))
+        self.eval_log = CsvLog(os.path.join(self.path, "eval.csv"))
+        self.writer = tensorboard_writer(self.path)
+
+    def write_row(self, log: CsvLog, row: dict, scalars: dict, frame: int):
+        """A row of train.csv or eval.csv, and its scalars as TensorBoard events."""
+        log.write(row)
+        if self.writer:
+            for tag, value in scalars.items():
+                self.writer.add_scalar(tag, value, frame)
+
+    def note(self, tag: str, text: str, frame: int):
+        if self.writer:
+            self.writer.add_text(tag, text, frame)
+
+    def check_free_space(self, snapshot: int, buffer: int):
+        """Before any compute is spent: a disk that cannot hold the next snapshot.pt (`snapshot`
+        bytes) is refused (the run's work would be lost at its first snapshot); one that cannot hold
+        what the run writes at its largest (two snapshot.pt while one replaces the other, and with
+        --save-buffer two buffer.npz of the full replay, `buffer` bytes) is warned of. Says the
+        sizes either way."""
+        names = ("snapshot.pt", "buffer.npz")
+        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in names)
+                      if os.path.exists(p))
+        free = shutil.disk_usage(self.path).free
+        more = 2 * snapshot + (2 * buffer if self.run.save_buffer else 0) - on_disk
+        print(f"disk: snapshot.pt {size(snapshot)}"
+              + (f", buffer.npz up to {size(buffer)}" if self.run.save_buffer else "")
+              + f"; {size(free)} free in {self.path}")
+        if free < snapshot:
+            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run "
+                                  f"takes {size(snapshot)}: free some space, or give --run-root on "
+                                  "a larger disk")
+        if free < more:
+            cli.warn(f"{self.path}: {size(free)} free, but this run's files need up to "
+                     f"{size(more)} more (two snapshot.pt of {size(snapshot)} while one replaces "
+                     "the other"
+                     + (f", two buffer.npz of up to {size(buffer)}" if self.run.save_buffer else "")
+                     + "): it will stop on a full disk before its end, its last snapshot standing")
+
+    def save(self, payload: dict, buffer, frame: int):
+        """buffer.npz (with --save-buffer), then snapshot.pt; each write is atomic, and the
+        payload's buffer_t tells a resume whether a kill between the two left a buffer newer than
+        the snapshot."""
+        if self.run.save_buffer:
+            save_buffer(buffer, os.path.join(self.path, "buffer.npz"))
+        save_snapshot(self.path, payload)
+        self.snapshot_frame = frame
+
+    def restore_buffer(self, buffer):
+        """The resumed snapshot's replay buffer, where buffer.npz holds it (else the buffer
+        refills)."""
+        state, path = self.resumed, os.path.join(self.path, "buffer.npz")
+        if not (os.path.exists(path) and state.get("buffer_saved")):
+            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
+        elif saved_buffer_t(path) != state.get("buffer_t", saved_buffer_t(path)):
+            print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); "
+                  "refilling")
+        else:
+            load_buffer(buffer, path)
+
+    def set_aside_after(self, frame: int, eval_frame: int):
+        """train.csv's rows after `frame` and eval.csv's after `eval_frame` go to side files."""
+        set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
+        set_aside_rows_after(os.path.join(self.path, "eval.csv"), eval_frame)
+
+    def close(self):
+        if self.writer:
+            self.writer.close()
+
+    def release(self):
+        if self.lock is not None:
+            self.lock.release()
+
+    def remove_if_unsaved(self) -> bool:
+        """A new run's directory without a snapshot: removed (True if it is gone)."""
+        if self.run.resume or self.path is None or self.snapshot_frame is not None:
+            return False
+        # the lock file goes too; the lock is an open fd
+        shutil.rmtree(self.path, ignore_errors=True)
+        return not os.path.exists(self.path)
+
+    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
+        """A storage error's line, ended with what the run dir holds now and how to go on."""
+        if self.path is None:
+            return cli.StorageError(f"{error}; no run directory was made")
+        if self.snapshot_frame is None:
+            return cli.StorageError(f"{error}; {self.path} " + (
+                "had no snapshot yet and was removed (nothing to resume)" if removed
+                else "has no snapshot yet, so there is nothing to resume"))
+        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: "
+                                f"fix that, then python sear.py --resume {self.path}")
+
+    def what_a_kill_leaves(self) -> str:
+        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its
+        watcher thread while the main thread is stuck in a native call): no other cleanup runs."""
+        if self.path is None:
+            return "nothing was saved"
+        if self.snapshot_frame is None:
+            return f"{self.path} " + ("had no snapshot yet and was removed" if self.remove_if_unsaved()
+                                      else "has no snapshot yet, so there is nothing to resume: "
+                                           "delete it")
+        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python "
+                f"sear.py --resume {self.path}")
+
+
+class Console:
+    """What a run shows: what runs where and how long it should take, at its start; the progress
+    line (Progress: speed, ETA, what the loop is doing, health warnings) during episodes and
+    evaluations; each evaluation's result and each snapshot; and what a first SIGTERM waits for."""
+
+    def __init__(self, cfg, run: cli.RunConfig, saved: dict | None):
+        self.cfg = cfg
+        self.progress = Progress(cfg.frames, run.log_every, cfg.eval_every, saved)
+        self.evaluating = False  # between start_eval() and end_eval()
+        # wall clock: the evaluation's start, its episode's
+        self.eval_began = self.episode_began = 0.0
+        self.eval_episodes = self.eval_episode = self.eval_step = 0  # its length, where it is
+
+    def say_run(self, path, agent, buffer):
+        cfg = self.cfg
+        print(f"run dir: {path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device "
+              f"{agent.device} | action repeat {cfg.action_repeat} | replay {cfg.replay_size} x "
+              f"{buffer.bytes_per_transition} B = "
+              f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
+        if cfg.mask_source != "sim":
+            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the "
+                  "simulator's mask "
+                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
+                     else "is never rendered)"))
+
+    def say_expected_time(self, frame, next_eval):
+        p = self.progress
+        if p.learning_fps():  # a resumed run: the speeds its snapshot kept
+            print(f"speed when last run: {p.learning_fps():.3g} frames/s with updates"
+                  + (f", {duration(p.eval_length())} per evaluation" if p.eval_length() else "")
+                  + f"; ETA {duration(p.eta(frame, next_eval))} until measured again here")
+        else:
+            print("ETA: measuring; the cost of this run is said once its first updates are timed "
+                  f"(they start at frame {max(frame, self.cfg.seed_frames)}"
+                  + (", after the frame-0 evaluation of the untrained policy)" if frame == 0 else ")"))
+
+    def tick(self, frame, next_eval):
+        """After every env step: the speeds, and once they are measured what the run costs here."""
+        self.progress.measure(frame)
+        cost = self.progress.cost(frame, next_eval)
+        if cost:
+            self.progress.say(cost)
+
+    def show_step(self, frame, episode, ep_len, next_eval):
+        self.tick(frame, next_eval)
+        self.progress.update(frame, f"ep {episode} step {ep_len}", self.progress.eta(frame, next_eval))
+
+    def show_episode(self, frame, episode, ep_return, next_eval):
+        """The line of an episode that just ended (after tick()); its length is measured."""
+        p = self.progress
+        p.update(frame, f"ep {episode} return {ep_return:.1f}", p.eta(frame, next_eval), force=True)
+        p.see_episode(frame)
+        p.restart_window(frame)
+
+    def warn(self, kind, message):
+        """A health warning: on stderr, and on the progress line from now on."""
+        self.progress.flags.append(f"warning: {kind}")
+        cli.warn(message)
+
+    def start_eval(self, frame, episodes: int, untrained: str):
+        self.evaluating, self.eval_episodes, self.eval_episode, self.eval_step = True, episodes, 0, 0
+        self.eval_began = self.episode_began = time.time()
+        self.progress.say(f"evaluating at frame {frame} ({episodes} episodes)"
+                          + (f": {untrained}, before any update" if untrained else ""))
+
+    def show_eval(self, frame, episode, t, untrained: str, next_eval):
+        """The progress line during an evaluation: which episode, of which policy at frame 0, and
+        once an episode is done how long the evaluation has left."""
+        now = time.time()
+        if episode != self.eval_episode:  # the one before has ended
+            self.progress.see_eval_episode(now - self.episode_began)
+            self.eval_episode, self.episode_began = episode, now
+        self.eval_step = t
+        done, spent = episode / self.eval_episodes, now - self.eval_began
+        text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
+                + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
+        self.progress.update(frame, text, self.progress.eta(frame, next_eval, done, spent))
+
+    def end_eval(self, frame, episodes: int) -> float:
+        """The evaluation has ended after `episodes`, whole or cut short; off the training-speed
+        clock. Returns its seconds."""
+        now = time.time()
+        if episodes > self.eval_episode:  # its last episode ran to its end
+            self.progress.see_eval_episode(now - self.episode_began)
+        seconds, self.evaluating = now - self.eval_began, False
+        if episodes == self.eval_episodes:
+            self.progress.eval_seconds.append(seconds)
+        else:
+            self.progress.say(f"evaluation at frame {frame} stopped by SIGTERM after {episodes} of "
+                              f"{self.eval_episodes} episodes: no eval.csv row; a resume evaluates "
+                              "again")
+        self.progress.pause(seconds)
+        return seconds
+
+    def say_eval(self, frame, row: dict, scores: dict, seconds: float):
+        self.progress.say(f"eval @ frame {frame}: return {row['return']:.1f}"
+                          + (f", success {row['success']:.2f}" if "success" in row else "")
+                          + "".join(f", {name} {value:.3g}" for name, value in scores.items())
+                          + f" ({seconds:.1f} s)")
+
+    def waits_for(self, frame, mid_episode: bool) -> str:
+        """What a first SIGTERM waits for, and how long at most as measured (cli.TermSignal's
+        line)."""
+        p = self.progress
+        episode = (f"at most one episode: ~{duration(math.ceil(p.episode_bound()))}, measured"
+                   if p.episode_bound() else "at most one episode, not timed yet in this process")
+        if not self.evaluating:
+            return f"the next episode end ({episode}), with a snapshot"
+        if p.eval_episode_bound():
+            bound = f"at most ~{duration(math.ceil(p.eval_episode_bound()))}, measured"
+        else:
+            bound = (f"not timed yet: the first of this process, at step {self.eval_step} after "
+                     f"{duration(time.time() - self.episode_began)}")
+        then = (f", then the end of the training episode under way ({episode})"
+                if mid_episode and frame < self.cfg.frames else "")
+        return (f"the end of this evaluation episode ({bound}){then}, with a snapshot; the "
+                f"evaluation is redone on resume")
+
+
+class RunDir:
+    """The `with` block a run trains in, over its RunFiles (the directory: config.json, the logs,
+    snapshot.pt with buffer.npz beside it, videos/) and its Console (the lines it prints): on
+    Ctrl-C, SIGTERM, a storage error or a value that is not finite, one line that says what was
+    saved. Nothing is created before create(). A first SIGTERM in the block waits for a safe point:
+    create(), or safe_point() between episodes; an evaluation under way ends at its episode end
+    first.
+
+    The loop (train.train) decides when to evaluate and to snapshot (between episodes, every
+    --snapshot-minutes) and moves its Counters; RunDir writes what it is handed, and snapshots on
+    its own only on a Ctrl-C or SIGTERM between episodes and after the final evaluation. A snapshot
+    holds the agent, the RNG states, the counters and, beside it, the replay buffer; the next
+    episode's reset seed follows from its number, so a resume (with --save-buffer) does exactly what
+    the uninterrupted run would have done."""
+
+    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
+        self.cfg, self.run, self.resumed = cfg, run, snapshot
+        self.files = RunFiles(cfg, run, snapshot)
+        self.console = Console(cfg, run, (snapshot or {}).get("progress"))
+        self.health = Health(cfg.discount)
+        self.counters = None  # the loop's, from start()
+        self.agent = self.buffer = self.sample_rng = None  # what a snapshot saves, from start()
+        self.watch = None  # the evaluation under way (start_eval)
+        self.cut = ""  # what a SIGTERM cut short: said when the run stops
+        self.pending = []  # the updates' metrics not read from the device yet
+        self.metrics = {}  # the updates' metrics of the episode under way, read
+        self.start_time = time.time()  # less the wall time of the runs a resume continues (start())
+
+    @property
+    def path(self):
+        return self.files.path
+
+    @property
+    def frame(self):
+        return self.counters.step * self.cfg.action_repeat if self.counters else self.files.snapshot_frame or 0
+
+    # --- start ---
+    def create(self):
+        """Once the envs are made (every input checked): the start-up warnings, then a new run's
+        directory and its config.json; a resumed run has both."""
+        for message in cli.start_warnings(self.cfg, self.run):
+            cli.warn(message)
+        if self.files.path is None:
+            self.safe_point()  # stopped while the envs were made: nothing to keep
+            self.files.create()
 
     @staticmethod
     def safe_point():
-        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops here."""
+        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops
+        here."""
         if cli.TERM.pending:
             raise cli.Terminated
+
+    @staticmethod
+    def stop_pending() -> bool:
+        """A first SIGTERM waits for the next safe point: an evaluation ends at its episode end."""
+        return cli.TERM.pending
 
     def start(self, agent, buffer, sample_rng: np.random.Generator) -> Counters:
         """Say what runs, restore a resumed run (weights, RNGs, buffer, counters) and open the logs.
         Returns the counters the loop advances; the snapshots save them with agent, buffer and
         sample_rng."""
-        cfg = self.cfg
         self.agent, self.buffer, self.sample_rng = agent, buffer, sample_rng
-        print(f"run dir: {self.path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device {agent.device} | "
-              f"action repeat {cfg.action_repeat} | replay {cfg.replay_size} x {buffer.bytes_per_transition} B = "
-              f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
-        if cfg.mask_source != "sim":
-            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the simulator's mask "
-                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
-                     else "is never rendered)"))
+        self.console.say_run(self.path, agent, buffer)
         counters, wall_time = self.restore() if self.resumed else (Counters(), 0.0)
-        self.train_log = CsvLog(os.path.join(self.path, "train.csv"))
-        self.eval_log = CsvLog(os.path.join(self.path, "eval.csv"))
-        self.writer = tensorboard_writer(self.path)
-        self.progress = Progress(cfg.frames, self.run.log_every, cfg.eval_every, (self.resumed or {}).get("progress"))
-        self.health = Health(cfg.discount)
+        self.files.open_logs()
         self.health.see_rewards(buffer.rewards[:len(buffer)].cpu().numpy())
         self.start_time = time.time() - wall_time
         self.counters = counters
-        self.check_free_space()
-        self.say_expected_time()
-        self.progress.restart_window(self.frame)
+        self.files.check_free_space(snapshot_bytes(agent), self.cfg.replay_size * buffer.bytes_per_transition)
+        self.console.say_expected_time(self.frame, self.next_eval())
+        self.console.progress.restart_window(self.frame)
         return counters
-
-    def check_free_space(self):
-        """Before any compute is spent: a disk that cannot hold the next snapshot.pt is refused (the
-        run's work would be lost at its first snapshot); one that cannot hold what the run writes at
-        its largest (two snapshot.pt while one replaces the other, and with --save-buffer two
-        buffer.npz of the full replay) is warned of. Says the sizes either way."""
-        snapshot, buffer = snapshot_bytes(self.agent), self.cfg.replay_size * self.buffer.bytes_per_transition
-        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in ("snapshot.pt", "buffer.npz"))
-                      if os.path.exists(p))
-        free = shutil.disk_usage(self.path).free
-        more = 2 * snapshot + (2 * buffer if self.run.save_buffer else 0) - on_disk
-        print(f"disk: snapshot.pt {size(snapshot)}" + (f", buffer.npz up to {size(buffer)}" if self.run.save_buffer
-                                                       else "") + f"; {size(free)} free in {self.path}")
-        if free < snapshot:
-            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run takes "
-                                  f"{size(snapshot)}: free some space, or give --run-root on a larger disk")
-        if free < more:
-            cli.warn(f"{self.path}: {size(free)} free, but this run's files need up to {size(more)} more (two "
-                     f"snapshot.pt of {size(snapshot)} while one replaces the other"
-                     + (f", two buffer.npz of up to {size(buffer)}" if self.run.save_buffer else "")
-                     + "): it will stop on a full disk before its end, its last snapshot standing")
-
-    def say_expected_time(self):
-        p, frame = self.progress, self.frame
-        if p.learning_fps():  # a resumed run: the speeds its snapshot kept
-            print(f"speed when last run: {p.learning_fps():.3g} frames/s with updates"
-                  + (f", {duration(p.eval_length())} per evaluation" if p.eval_length() else "")
-                  + f"; ETA {duration(p.eta(frame, self.next_eval()))} until measured again here")
-        else:
-            print(f"ETA: measuring; the cost of this run is said once its first updates are timed (they start "
-                  f"at frame {max(frame, self.cfg.seed_frames)}"
-                  + (", after the frame-0 evaluation of the untrained policy)" if frame == 0 else ")"))
 
     def restore(self) -> tuple[Counters, float]:
         """The resumed snapshot's weights, RNG states and buffer; rows logged after it go to side
         files. Returns its counters and wall time."""
-        state, cfg = self.resumed, self.cfg
-        load_agent(self.agent, state["agent"], cfg, "--resume")
+        state = self.resumed
+        load_agent(self.agent, state["agent"], self.cfg, "--resume")
         set_rng_state(state["rng"])
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]
-        # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the loop
-        # owned its schedule saved the next evaluation's frame instead of the last one's.
+        # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the
+        # loop owned its schedule saved the next evaluation's frame instead of the last one's.
         counters = Counters(c["step"], c["episode"] + (1 if c["mid_episode"] else 0),
                             c.get("last_eval_frame", c.get("next_eval", 0) - 1))
-        buffer_path = os.path.join(self.path, "buffer.npz")
-        if not (os.path.exists(buffer_path) and state.get("buffer_saved")):
-            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
-        elif saved_buffer_t(buffer_path) != state.get("buffer_t", saved_buffer_t(buffer_path)):
-            print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); refilling")
-        else:
-            load_buffer(self.buffer, buffer_path)
-        frame = counters.step * cfg.action_repeat
-        set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
-        # A snapshot taken at an episode end precedes that frame's evaluation: the resumed run
-        # evaluates again from its next evaluation on, so rows from there go aside too.
-        set_aside_rows_after(os.path.join(self.path, "eval.csv"), min(frame, self.next_eval(counters) - 1))
+        self.files.restore_buffer(self.buffer)
+        frame = counters.step * self.cfg.action_repeat
+        # A snapshot taken at an episode end precedes that frame's evaluation (and one a SIGTERM cut
+        # short wrote no row): the resumed run evaluates again from its next evaluation on, so rows
+        # from there go aside too.
+        self.files.set_aside_after(frame, min(frame, self.next_eval(counters) - 1))
         print(f"resumed at frame {frame}, episode {counters.episode}")
         return counters, c["wall_time"]
 
     def next_eval(self, counters=None) -> int:
-        """The frame of the next scheduled evaluation: the first multiple of --eval-every after the last."""
+        """The frame of the next scheduled evaluation: the first multiple of --eval-every after the
+        last."""
         last = (counters or self.counters).last_eval_frame
         return (last // self.cfg.eval_every + 1) * self.cfg.eval_every
 
@@ -1124,72 +1419,56 @@ class RunDir:
         """A snapshot between episodes, off the training-speed clock."""
         began = time.time()
         self.save()
-        self.progress.pause(time.time() - began)
-        self.progress.say(f"snapshot at frame {self.frame}")
+        self.console.progress.pause(time.time() - began)
+        self.console.progress.say(f"snapshot at frame {self.frame}")
 
     def save(self):
-        """snapshot.pt (and buffer.npz); never of an agent whose parameters are no longer finite: the
-        last snapshot then stands (a scan of the parameters, ~0.2 s for SEAR's 16M on one CPU thread)."""
+        """snapshot.pt (and buffer.npz); never of an agent whose parameters are no longer finite:
+        the last snapshot then stands (a scan of the parameters, ~0.2 s for SEAR's 16M on one CPU
+        thread)."""
         if self.non_finite_networks():
             raise cli.NonFinite("the snapshot due now was not written")
         counters = {**dataclasses.asdict(self.counters), "wall_time": time.time() - self.start_time}
         payload = {"config": cli.config_dict(self.cfg, self.run), "agent": self.agent.state_dict(),
                    "rng": rng_state(), "sample_rng": self.sample_rng.bit_generator.state,
                    "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters,
-                   "progress": self.progress.state()}  # the ETA of the next start
-        # Buffer first, then snapshot.pt; each write is atomic, and buffer_t tells a resume
-        # whether a kill between the two left a buffer newer than the snapshot.
-        if self.run.save_buffer:
-            save_buffer(self.buffer, os.path.join(self.path, "buffer.npz"))
-        save_snapshot(self.path, payload)
-        self.snapshot_frame = self.frame
+                   "progress": self.console.progress.state()}  # the ETA of the next start
+        self.files.save(payload, self.buffer, self.frame)
 
     def finish(self) -> str:
-        """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the path."""
+        """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the
+        path."""
         self.read_updates()  # the cut episode's updates get no row, but their health checks
         self.save()
-        self.progress.say(f"done: {self.frame} frames in {time.time() - self.start_time:.0f} s; outputs in {self.path}")
-        if self.writer:
-            self.writer.close()
+        self.console.progress.say(f"done: {self.frame} frames in "
+                                  f"{time.time() - self.start_time:.0f} s; outputs in {self.path}")
+        self.files.close()
         return self.path
 
+    # --- the with block: how a run stops ---
     def __enter__(self):
-        if self.path is not None:
+        if self.files.path is not None:
             try:
-                self.own()
+                self.files.own()
             except cli.StorageError as e:
                 self.release()
-                raise self.what_stands(e) from None
-        cli.TERM.defer, cli.TERM.stands = True, self.what_a_kill_leaves
+                raise self.files.what_stands(e) from None
+        cli.TERM.defer, cli.TERM.stands, cli.TERM.waits_for = True, self.files.what_a_kill_leaves, self.waits_for
         return self
 
-    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
-        """A storage error's line, ended with what the run dir holds now and how to go on."""
-        if self.path is None:
-            return cli.StorageError(f"{error}; no run directory was made")
-        if self.snapshot_frame is None:
-            return cli.StorageError(f"{error}; {self.path} " + ("had no snapshot yet and was removed (nothing to "
-                                                                "resume)" if removed else
-                                                                "has no snapshot yet, so there is nothing to resume"))
-        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: fix that, then "
-                                f"python sear.py --resume {self.path}")
-
-    def what_a_kill_leaves(self) -> str:
-        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its watcher
-        thread while the main thread is stuck in a native call): no other cleanup runs."""
-        if self.path is None:
-            return "nothing was saved"
-        if self.snapshot_frame is None:
-            return f"{self.path} " + ("had no snapshot yet and was removed" if self.remove_if_unsaved()
-                                      else "has no snapshot yet, so there is nothing to resume: delete it")
-        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python sear.py --resume "
-                f"{self.path}")
+    def waits_for(self) -> str:
+        """What a first SIGTERM waits for (cli.TermSignal prints it): before the run's first
+        episode, the next safe point; then the next episode end, or the end of the evaluation
+        episode under way."""
+        if self.counters is None:
+            return ("the end of the start-up (before the run directory is made, or at the first "
+                    "episode), with a snapshot once there is a run directory")
+        return self.console.waits_for(self.frame, self.counters.mid_episode)
 
     def release(self):
         cli.TERM.defer = cli.TERM.pending = False
-        cli.TERM.stands = None
-        if self.lock is not None:
-            self.lock.release()
+        cli.TERM.stands = cli.TERM.waits_for = None
+        self.files.release()
 
     def __exit__(self, kind, error, traceback):
         try:
@@ -1198,53 +1477,55 @@ class RunDir:
             self.release()
 
     def stopped(self, kind, error):
-        """Ctrl-C or SIGTERM: a snapshot where the state is exactly resumable (between episodes; at the
-        end of the budget it is what the final snapshot holds anyway), then one line saying what is
-        saved. A storage error: its line says what stands. A value that is not finite (cli.NonFinite):
-        one line with the frame, what it was and what stands. A new run that ends before its first
-        snapshot, however it ends (but for a kill), leaves no run directory: nothing in it resumes."""
+        """Ctrl-C or SIGTERM: a snapshot where the state is exactly resumable (between episodes; at
+        the end of the budget it is what the final snapshot holds anyway), then one line saying what
+        is saved. A storage error: its line says what stands. A value that is not finite
+        (cli.NonFinite): one line with the frame, what it was and what stands. A new run that ends
+        before its first snapshot, however it ends (but for a kill), leaves no run directory:
+        nothing in it resumes."""
         if kind is None:
             return
         c, frame, failed = self.counters, self.frame, ""
         where = ("starting" if c is None else "end of budget" if frame >= self.cfg.frames
                  else "mid-episode" if c.mid_episode else "between episodes")
         if (issubclass(kind, KeyboardInterrupt) and where in ("between episodes", "end of budget")
-                and self.snapshot_frame != frame):
-            try:
-                self.save()
-            except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
-                pass
-            except cli.StorageError as e:
-                failed = f" (the snapshot of frame {frame} failed: {e})"
-            except cli.NonFinite:
-                failed = f" (no snapshot of frame {frame}: parameters no longer finite in {self.non_finite_networks()})"
-        removed = self.remove_if_unsaved()
+                and self.files.snapshot_frame != frame):
+            failed = self.save_on_stop()
+        removed = self.files.remove_if_unsaved()
         if issubclass(kind, cli.StorageError):
-            raise self.what_stands(error, removed) from None
+            raise self.files.what_stands(error, removed) from None
         if issubclass(kind, cli.NonFinite):
             raise cli.NonFinite(self.diverged(error, removed)) from None
         if issubclass(kind, KeyboardInterrupt):
             cause, code = cli.stop_cause(error)
-            raise cli.Interrupted(interrupt_message(self.path, frame, where, self.snapshot_frame,
-                                                    self.run.snapshot_minutes, cause, removed) + failed, code) from None
+            line = interrupt_message(self.path, frame, where + self.cut, self.files.snapshot_frame,
+                                     self.run.snapshot_minutes, cause, removed)
+            raise cli.Interrupted(line + failed, code) from None
 
-    def remove_if_unsaved(self) -> bool:
-        """A new run's directory without a snapshot: removed (True if it is gone)."""
-        if self.run.resume or self.path is None or self.snapshot_frame is not None:
-            return False
-        shutil.rmtree(self.path, ignore_errors=True)  # the lock file goes too; the lock itself is an open fd
-        return not os.path.exists(self.path)
+    def save_on_stop(self) -> str:
+        """The snapshot of a Ctrl-C or SIGTERM between episodes; '' or why there is none."""
+        frame = self.frame
+        try:
+            self.save()
+        # a second Ctrl-C: the atomic writes leave the last snapshot whole
+        except KeyboardInterrupt:
+            pass
+        except cli.StorageError as e:
+            return f" (the snapshot of frame {frame} failed: {e})"
+        except cli.NonFinite:
+            return (f" (no snapshot of frame {frame}: parameters no longer finite in "
+                    f"{self.non_finite_networks()})")
+        return ""
 
     def non_finite_networks(self) -> list[str]:
         """The agent's networks with a parameter that is not a finite number."""
-        agent = getattr(self, "agent", None)
-        nets = {name: getattr(agent, name, None) for name in ("encoder", "actor", "critic", "aux")}
+        nets = {name: getattr(self.agent, name, None) for name in ("encoder", "actor", "critic", "aux")}
         return [name for name, net in nets.items()
                 if net is not None and not all(torch.isfinite(p).all() for p in net.parameters())]
 
     def diverged(self, error: cli.NonFinite, removed: bool) -> str:
-        """The line of a run stopped by a value that is not finite: the first update metric that was not,
-        if one was (the cause), else what stopped it (an action)."""
+        """The line of a run stopped by a value that is not finite: the first update metric that was
+        not, if one was (the cause), else what stopped it (an action)."""
         try:
             self.read_updates()
         except cli.NonFinite as first:
@@ -1253,24 +1534,28 @@ class RunDir:
         line = (f"the run diverged at frame {self.frame}: {error}"
                 + (f" (parameters no longer finite: {', '.join(nets)})" if nets else "")
                 + "; it stopped before that reached the simulator")
-        if self.snapshot_frame is not None:
-            return (line + f"; the last snapshot (frame {self.snapshot_frame}) stands: python sear.py --resume "
-                    f"{self.path} continues from it (with --save-buffer it replays the same updates): docs/health.md")
+        if self.files.snapshot_frame is not None:
+            return (line + f"; the last snapshot (frame {self.files.snapshot_frame}) stands: "
+                           "python sear.py "
+                    f"--resume {self.path} continues from it (with --save-buffer it replays the "
+                    f"same updates): docs/health.md")
         return (line + f"; {self.path} " + ("had no snapshot yet and was removed" if removed else
                                             "has no snapshot yet, so there is nothing to resume")
-                + "; start again with other settings (a lower --lr, smaller loss weights): docs/health.md")
+                + "; start again with other settings (a lower --lr, smaller loss weights): "
+                  "docs/health.md")
 
     # --- logs ---
     def log_update(self, metrics: dict):
-        """An update's metrics (0-d tensors on the device, as the agent returns them): kept there until
-        the next log line reads them all at once (read_updates), so that updates never wait for the host."""
-        self.progress.updates += 1
+        """An update's metrics (0-d tensors on the device, as the agent returns them): kept there
+        until the next log line reads them all at once (read_updates), so that updates never wait
+        for the host."""
+        self.console.progress.updates += 1
         self.pending.append(metrics)
 
     def read_updates(self):
-        """The pending updates' metrics, read in one device sync: into the episode's means, and through the
-        health checks, update by update (a value that is not finite stops the run; an agent whose weights
-        went NaN is stopped sooner, at its next action, by FiniteActions)."""
+        """The pending updates' metrics, read in one device sync: into the episode's means, and
+        through the health checks, update by update (a value that is not finite stops the run; an
+        agent whose weights went NaN is stopped sooner, at its next action, by FiniteActions)."""
         values = [v for metrics in self.pending for v in metrics.values()]
         tensors = [v for v in values if torch.is_tensor(v)]
         read = iter(torch.stack([v.detach().double() for v in tensors]).tolist() if tensors else [])
@@ -1279,93 +1564,75 @@ class RunDir:
         for metrics in pending:
             metrics = {k: next(values) for k in metrics}
             for kind, message in self.health.check(metrics):
-                self.progress.flags.append(f"warning: {kind}")
-                cli.warn(message)
-                if self.writer:
-                    self.writer.add_text("health", message, self.frame)
+                self.console.warn(kind, message)
+                self.files.note("health", message, self.frame)
             for k, v in metrics.items():
                 self.metrics.setdefault(k, []).append(v)
 
-    def tick(self):
-        """After every env step: the speeds, and once they are measured what the run costs here."""
-        self.progress.measure(self.frame)
-        cost = self.progress.cost(self.frame, self.next_eval())
-        if cost:
-            self.progress.say(cost)
-
     def show_step(self, ep_len):
-        self.tick()
-        self.progress.update(self.frame, f"ep {self.counters.episode} step {ep_len}",
-                             self.progress.eta(self.frame, self.next_eval()))
+        self.console.show_step(self.frame, self.counters.episode, ep_len, self.next_eval())
 
     def log_episode(self, ep_return, ep_len, ep_success, info):
         """A train.csv row (and TensorBoard scalars) for the episode that just ended."""
-        frame, episode, progress, b = self.frame, self.counters.episode, self.progress, self.buffer
+        frame, episode, b = self.frame, self.counters.episode, self.buffer
         self.read_updates()
-        self.tick()
-        self.health.see_rewards(b.rewards[torch.arange(b.t - ep_len, b.t) % b.capacity].cpu().numpy())  # the episode's
-        row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return, "length": ep_len}
+        self.console.tick(frame, self.next_eval())
+        # the episode's rewards
+        self.health.see_rewards(b.rewards[torch.arange(b.t - ep_len, b.t) % b.capacity].cpu().numpy())
+        row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return,
+               "length": ep_len}
         if "success" in info:
             row["success"] = float(ep_success)
         if "task" in info:  # task sets: which task the episode drew
             row["task"] = info["task"]
         means = {k: float(np.mean(v)) for k, v in self.metrics.items()}
         row.update({k: means.get(k, "") for k in self.agent.metric_names})
-        row.update({"fps": round(progress.fps, 2), "wall_time": round(time.time() - self.start_time, 2)})
-        self.train_log.write(row)
-        if self.writer:
-            self.writer.add_scalar("train/return", ep_return, frame)
-            for k, v in means.items():
-                self.writer.add_scalar(f"train/{k}", v, frame)
-        progress.update(frame, f"ep {episode} return {ep_return:.1f}", progress.eta(frame, self.next_eval()),
-                        force=True)
-        progress.restart_window(frame)
+        row.update({"fps": round(self.console.progress.fps, 2),
+                    "wall_time": round(time.time() - self.start_time, 2)})
+        scalars = {"train/return": ep_return, **{f"train/{k}": v for k, v in means.items()}}
+        self.files.write_row(self.files.train_log, row, scalars, frame)
+        self.console.show_episode(frame, episode, ep_return, self.next_eval())
         self.metrics = {}
 
     # --- evaluations ---
     def untrained(self) -> str:
         """What an evaluation before any update scores ('' once the agent has been updated)."""
-        if self.frame or self.progress.updates:
+        if self.frame or self.console.progress.updates:
             return ""
         return "the policy copied by --init-from" if self.run.init_from else "the untrained policy"
 
     def start_eval(self, eval_env) -> EvalWatch:
-        """The eval env for sear.evaluate(), watched: the decoders' metrics, and the first episode
-        filmed with --save-video. Off the training-speed clock until log_eval()."""
-        self.eval_began, self.eval_episodes = time.time(), len(eval_tasks(eval_env, self.cfg))
-        untrained = self.untrained()
-        self.progress.say(f"evaluating at frame {self.frame} ({self.eval_episodes} episodes)"
-                          + (f": {untrained}, before any update" if untrained else ""))
-        video = os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video else None
+        """The eval env for train.evaluate(), watched: the decoders' metrics, and the first episode
+        filmed with --save-video. Off the training-speed clock until end_eval()."""
+        self.console.start_eval(self.frame, len(eval_tasks(eval_env, self.cfg)), self.untrained())
+        video = (os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video
+                 else None)
         self.watch = EvalWatch(self.agent, eval_env, video)
         return self.watch
 
     def show_eval(self, episode, t):
-        """The progress line during an evaluation (sear.evaluate's on_step): which episode, of which
-        policy at frame 0, and once an episode is done how long the evaluation has left."""
-        done, spent, untrained = episode / self.eval_episodes, time.time() - self.eval_began, self.untrained()
-        text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
-                + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
-        self.progress.update(self.frame, text, self.progress.eta(self.frame, self.next_eval(), done, spent))
+        """The progress line during an evaluation (train.evaluate's on_step)."""
+        self.console.show_eval(self.frame, episode, t, self.untrained(), self.next_eval())
 
-    def log_eval(self, episodes):
-        """An eval.csv row (and TensorBoard scalars) for sear.evaluate()'s episodes."""
-        c, frame, progress = self.counters, self.frame, self.progress
-        scores = self.watch.finish()
-        progress.eval_seconds.append(time.time() - self.eval_began)
-        row = {"frame": frame, "step": c.step, "episode": c.episode, "return": float(np.mean([e.ret for e in episodes])),
+    def end_eval(self, episodes) -> bool:
+        """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True); none
+        for an evaluation that a SIGTERM cut short (False): the resumed run evaluates again."""
+        c, frame, watch = self.counters, self.frame, self.watch
+        scores = watch.finish()
+        self.watch = None
+        seconds = self.console.end_eval(frame, len(episodes))
+        if len(episodes) < self.console.eval_episodes:
+            self.cut = (f"; its evaluation stopped after {len(episodes)} of "
+                        f"{self.console.eval_episodes} episodes, redone on resume")
+            return False
+        row = {"frame": frame, "step": c.step, "episode": c.episode,
+               "return": float(np.mean([e.ret for e in episodes])),
                "wall_time": round(time.time() - self.start_time, 2), **eval_columns(episodes), **scores}
         if measures_learned_iou(self.cfg):  # the mask model's IoU on these episodes' frames
-            row["learned_mask_iou"] = scores["learned_mask_iou"] = self.watch.env.pop()
-            if warning := self.watch.env.low_iou.see(row["learned_mask_iou"], frame):
+            row["learned_mask_iou"] = scores["learned_mask_iou"] = watch.env.pop()
+            if warning := watch.env.low_iou.see(row["learned_mask_iou"], frame):
                 cli.warn(warning)
-        self.eval_log.write(row)
-        if self.writer:
-            self.writer.add_scalar("eval/return", row["return"], frame)
-            for name, value in scores.items():
-                self.writer.add_scalar(f"eval/{name}", value, frame)
-        progress.say(f"eval @ frame {frame}: return {row['return']:.1f}"
-                     + (f", success {row['success']:.2f}" if "success" in row else "")
-                     + "".join(f", {name} {value:.3g}" for name, value in scores.items())
-                     + f" ({progress.eval_seconds[-1]:.1f} s)")
-        progress.pause(time.time() - self.eval_began)
+        scalars = {"eval/return": row["return"], **{f"eval/{name}": v for name, v in scores.items()}}
+        self.files.write_row(self.files.eval_log, row, scalars, frame)
+        self.console.say_eval(frame, row, scores, seconds)
+        return True

@@ -3,22 +3,23 @@
 Usage:  python plot.py runs/ --out runs/curves.png
         python plot.py 'runs/walker-walk*' --group method,env --metric return --title "Walker"
         python plot.py runs/ --metric success --csv eval --out runs/success.png --force
-        python plot.py 'runs/cartpole*' --csv train --metric dormant_ratio --out runs/dormant.png   (any column)
-        python plot.py 'runs/cartpole-balance_sparse*' --reference drqv2/curves/dmc_cartpole_balance_sparse.csv
-        python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out runs/mt10.png
-        python plot.py maps RUN_A [RUN_B ...] --out runs/maps.png [--frames N]   (activation maps, below)
+        python plot.py 'runs/cartpole*' --csv train --metric dormant_ratio --out runs/dormant.png
+        (any column) python plot.py 'runs/cartpole-balance_sparse*' --reference
+        drqv2/curves/dmc_cartpole_balance_sparse.csv python plot.py 'runs/metaworld-mt10*' --metric
+        success --per-task --out runs/mt10.png python plot.py maps RUN_A [RUN_B ...] --out
+        runs/maps.png [--frames N]   (activation maps, below)
 
 Arguments are run directories (holding config.json), parent folders (every folder below holding a
-config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"), and split
-by every other config value in which runs on the same env differ (say --mask-source); every line is
-then named by its values of all of them ("sear mask_source=learned:seg.pt"), so no line that differs
-is labelled plainly. The seed, the budget, the device, logging and how often and how long runs are
-evaluated (NOT_A_SETTING) never split a line. Each line is the mean over its runs and, with 2+ runs,
-a shaded 95% t-interval of the mean (mean +- t_{0.975, n-1} * std / sqrt(n)). With runs on several
-envs and env not a grouping key, each env gets its own subplot. Success rates are drawn on a [0, 1]
-axis. Layout (docs/figures.md): the axes keep their size whatever the legend holds; a short legend
-stays inside a single panel, a long one (or one for several panels) goes to an empty slot of the grid
-or below the panels with its labels wrapped; titles are wrapped to fit.
+config.json is a run) or globs. Runs are grouped by config keys (--group, default "method"), and
+split by every other config value in which runs on the same env differ (say --mask-source); every
+line is then named by its values of all of them ("sear mask_source=learned:seg.pt"), so no line that
+differs is labelled plainly. The seed, the budget, the device, logging and how often and how long
+runs are evaluated (NOT_A_SETTING) never split a line. Each line is the mean over its runs and, with
+2+ runs, a shaded 95% t-interval of the mean (mean +- t_{0.975, n-1} * std / sqrt(n)). With runs on
+several envs and env not a grouping key, each env gets its own subplot. Success rates are drawn on a
+[0, 1] axis. Layout (docs/figures.md): the axes keep their size whatever the legend holds; a short
+legend stays inside a single panel, a long one (or one for several panels) goes to an empty slot of
+the grid or below the panels with its labels wrapped; titles are wrapped to fit.
 
 Each run is drawn to its own end: at every frame the mean and CI are over the runs that have a value
 there (n per frame), the line is dashed where not all of them do, the table says how many reached
@@ -27,9 +28,9 @@ the last frame, and stderr warns which runs end early.
   train.csv  episodes end at different frames in each run, so each curve is linearly INTERPOLATED
              onto the union of the frames, within its own span.
 
---reference CSV[:LABEL] draws a published curve in DrQ-v2's format (curves/dmc_<task>.csv: seed, frame,
-episode_reward, task): its mean over seeds and a min-max band, on each panel with runs on that task
-(env cartpole-balance_sparse = task cartpole_balance_sparse), cut to the runs' last frame.
+--reference CSV[:LABEL] draws a published curve in DrQ-v2's format (curves/dmc_<task>.csv: seed,
+frame, episode_reward, task): its mean over seeds and a min-max band, on each panel with runs on
+that task (env cartpole-balance_sparse = task cartpole_balance_sparse), cut to the runs' last frame.
 
 --per-task draws task-set runs (metaworld-mt3/-mt10/-mt50) one panel per task, from eval.csv's
 per-task columns (success/<task>, return/<task>), and a last panel with each run's mean over tasks.
@@ -56,12 +57,16 @@ from functools import reduce
 
 import numpy as np
 
+import cli  # the standard library only: the curves need neither torch nor MuJoCo
+
+
 class PlotError(Exception):
     """Bad input: reported as one line on stderr, exit code 2."""
 
 
 class NoLogYet(PlotError):
-    """A run without the CSV asked for: it stopped before writing its first row. Skipped, not fatal."""
+    """A run without the CSV asked for: it stopped before writing its first row. Skipped, not
+    fatal."""
 
 
 # What a run has done when it first writes each log.
@@ -127,8 +132,8 @@ def task_columns(run_dir: str, metric: str) -> list[str]:
         header = next(csv.reader(f), [])
     tasks = [c[len(metric) + 1:] for c in header if c.startswith(metric + "/")]
     if not tasks:
-        raise PlotError(f"{path}: no per-task columns ({metric}/<task>); --per-task needs task-set runs "
-                        f"(metaworld-mt3, -mt10, -mt50)")
+        raise PlotError(f"{path}: no per-task columns ({metric}/<task>); --per-task needs task-set "
+                        f"runs (metaworld-mt3, -mt10, -mt50)")
     return tasks
 
 
@@ -140,14 +145,15 @@ def load_task_runs(run_dir: str, metric: str) -> list[dict]:
 
 # ---------------------------------------------------------------- statistics
 def t_quantile(p: float, df: int) -> float:
-    """Student-t quantile: the 95% interval of a mean over few seeds is wider than +-1.96 sd/sqrt(n)."""
+    """Student-t quantile: the 95% interval of a mean over few seeds is wider than +-1.96
+    sd/sqrt(n)."""
     from scipy import stats  # imported here: the rest of plot.py needs only numpy and matplotlib
     return float(stats.t.ppf(p, df))
 
 
 def stack_curves(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False):
-    """(frames, values): the union of the curves' frames, and each curve on them (NaN where it has no
-    value). eval.csv: a value only at a curve's own evaluation frames, so every point is a real
+    """(frames, values): the union of the curves' frames, and each curve on them (NaN where it has
+    no value). eval.csv: a value only at a curve's own evaluation frames, so every point is a real
     evaluation; train.csv (interpolate): linearly interpolated within the curve's own span."""
     if not curves:
         raise PlotError("no runs to average")
@@ -188,13 +194,13 @@ def env_of(run: dict) -> str:
 def config_label(config: dict, key: str) -> str:
     """A config value as a line's label names it; the method with its variant: drq+drm (--drm)."""
     if key == "method":
-        import cli  # stdlib only; imported here as the other project modules are
         return cli.method_label(config)
     return str(config[key])
 
 
 def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
-    """{label: runs} where label joins the runs' config values of `keys`, e.g. "sear / walker-walk"."""
+    """{label: runs} where label joins the runs' config values of `keys`, e.g. "sear /
+    walker-walk"."""
     groups = {}
     for run in runs:
         missing = [k for k in keys if k not in run["config"]]
@@ -204,11 +210,12 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
     return dict(sorted(groups.items()))
 
 
-# Config values that do not change what a line means: the seed, the budget (each run is drawn to its own
-# end), where the run lives and how it is computed (device, threads, prefetch), what it writes (logs,
-# snapshots, videos, the buffer) and how often and how long it is evaluated (eval_every moves the points,
-# eval_episodes makes each one less noisy: the curve is an estimate of the same thing). Runs that differ
-# only in these are seeds of one line. sear.py's RESUME_MAY_CHANGE is a subset.
+# Config values that do not change what a line means: the seed, the budget (each run is drawn to its
+# own end), where the run lives and how it is computed (device, threads, the replay's device,
+# prefetch, compilation, TF32), what it writes (logs, snapshots, videos, the buffer) and how often
+# and how long it is evaluated (eval_every moves the points, eval_episodes makes each one less
+# noisy: the curve is an estimate of the same thing). Runs that differ only in these are seeds of
+# one line. cli's RESUME_MAY_CHANGE is a subset.
 NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
                  "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate",
                  "eval_every", "eval_episodes", "eval_episodes_per_task",
@@ -216,23 +223,24 @@ NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", 
 
 
 def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
-    """The config keys that tell a panel's lines apart: those (apart from NOT_A_SETTING, the grouping
-    keys and the env) in which runs on the SAME env differ, so a value set per task (std_steps, a
-    recipe's per-task rows) does not count. A key only some runs record came with a later sear.py: only
-    the runs that record it can differ in it."""
+    """The config keys that tell a panel's lines apart: those (apart from NOT_A_SETTING, the
+    grouping keys and the env) in which runs on the SAME env differ, so a value set per task
+    (std_steps, a recipe's per-task rows) does not count. A key only some runs record came with a
+    later sear.py: only the runs that record it can differ in it."""
     by_env = {}
     for r in runs:
         by_env.setdefault(env_of(r), []).append(r["config"])
-    named = set(keys) | ({"drm"} if "method" in keys else set())  # config_label() names drm with the method
+    # config_label() names drm with the method
+    named = set(keys) | ({"drm"} if "method" in keys else set())
     names = sorted({k for r in runs for k in r["config"]} - NOT_A_SETTING - named - {"env"})
     return [k for k in names if any(len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1
                                     for configs in by_env.values())]
 
 
 def split_by_config(label: str, group: list[dict], differ: list[str]) -> dict[str, list[dict]]:
-    """One line per setting: a group's runs split by the panel's differing settings (differing_settings),
-    every line named by its values of all of them, e.g. "sear mask_source=learned:seg.pt", so that no
-    line that differs from another is labelled plainly."""
+    """One line per setting: a group's runs split by the panel's differing settings
+    (differing_settings), every line named by its values of all of them, e.g. "sear
+    mask_source=learned:seg.pt", so that no line that differs from another is labelled plainly."""
     if not differ:
         return {label: group}
     lines = {}
@@ -248,8 +256,9 @@ def warn_uneven_ends(label: str, group: list[dict]) -> None:
     if len(set(ends)) > 1:
         counts = ", ".join(f"{e}" + (f" (x{ends.count(e)})" if ends.count(e) > 1 else "")
                            for e in sorted(set(ends)))
-        print(f"plot.py: warning: {label}: runs end at frames {counts}; each is drawn to its own end, the mean "
-              f"and CI at a frame are over the runs that reached it (dashed where not all did)", file=sys.stderr)
+        print(f"plot.py: warning: {label}: runs end at frames {counts}; each is drawn to its own "
+              "end, the mean and CI at a frame are over the runs that reached it (dashed where "
+              "not all did)", file=sys.stderr)
 
 
 def task_mean_runs(task_runs: list[dict]) -> list[dict]:
@@ -277,7 +286,8 @@ def short_frames(x, _pos=None) -> str:
 
 
 def band(mean: np.ndarray, ci: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) of a line: ci is a half-width per frame, or (2, frames) bounds (a bootstrap's)."""
+    """(lower, upper) of a line: ci is a half-width per frame, or (2, frames) bounds (a
+    bootstrap's)."""
     ci = np.asarray(ci, dtype=float)
     return (ci[0], ci[1]) if ci.ndim == 2 else (mean - ci, mean + ci)
 
@@ -310,10 +320,11 @@ def rate_axis(ax, ylabel: str) -> None:
         ax.set_ylim(0.0, 1.0)
 
 
-# The layout rule: every panel's axes keep AXES_HEIGHT inches whatever its titles and legend need (the figure
-# grows instead); a legend stays inside its axes only on a single panel with at most LEGEND_INSIDE entries of
-# at most LABEL_INSIDE characters, else one legend serves all panels, in the grid's empty slot or below the
-# panels, its labels wrapped to fit; titles are wrapped to their axes' width, the figure's title to the figure's.
+# The layout rule: every panel's axes keep AXES_HEIGHT inches whatever its titles and legend need
+# (the figure grows instead); a legend stays inside its axes only on a single panel with at most
+# LEGEND_INSIDE entries of at most LABEL_INSIDE characters, else one legend serves all panels, in
+# the grid's empty slot or below the panels, its labels wrapped to fit; titles are wrapped to their
+# axes' width, the figure's title to the figure's.
 PANEL_SIZE = (5.0, 3.6)      # inches per panel before titles and legends
 AXES_HEIGHT = 2.6            # inches
 LEGEND_INSIDE, LABEL_INSIDE = 6, 48
@@ -329,8 +340,8 @@ def fit_text(text, width_px: float, renderer) -> None:
 
 
 def place_legend(fig, entries: dict, title: str | None, spare, renderer):
-    """One legend for every panel: in the grid's first empty slot (`spare`) if it fits there, else below
-    the panels; as many columns as fit, labels wrapped to a column."""
+    """One legend for every panel: in the grid's first empty slot (`spare`) if it fits there, else
+    below the panels; as many columns as fit, labels wrapped to a column."""
     import matplotlib
     where = spare if spare is not None else fig
     width = 0.98 * where.get_window_extent(renderer).width
@@ -359,7 +370,8 @@ def place_legend(fig, entries: dict, title: str | None, spare, renderer):
 
 
 def keep_axes_height(fig, axes: list, rows: int) -> None:
-    """Grow the figure until its shortest axes is AXES_HEIGHT inches tall (the layout runs again on each draw)."""
+    """Grow the figure until its shortest axes is AXES_HEIGHT inches tall (the layout runs again on
+    each draw)."""
     for _ in range(4):
         fig.canvas.draw()
         short = AXES_HEIGHT - min(ax.get_position().height for ax in axes) * fig.get_figheight()
@@ -370,24 +382,42 @@ def keep_axes_height(fig, axes: list, rows: int) -> None:
 
 def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float, str] | None = None,
          references: dict | None = None, estimates: dict | None = None, ylabels: dict | None = None):
-    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's title, or
-    the panels' titles where panels differ); ylabels: {panel: its y-label} where not `ylabel`. Each
+    """estimates: {panel: what its lines and bands are} where not "mean ± 95% CI" (the legend's
+    title, or the panels' titles where panels differ); ylabels: {panel: its y-label} where not
+    `ylabel`. Each
     --reference curve is cut to the last frame of its panel's runs."""
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter
 
-    labels = sorted({label for curves in panels.values() for label in curves})
-    colors = {label: f"C{i % 10}" for i, label in enumerate(labels)}  # same group, same color
     cols = min(len(panels), 3)
     rows = math.ceil(len(panels) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows), squeeze=False,
-                             layout="constrained")
+    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows),
+                             squeeze=False, layout="constrained")
     used = list(axes.flat[:len(panels)])
     what = {panel: (estimates or {}).get(panel, "mean ± 95% CI") for panel in panels}
     one_estimate = len(set(what.values())) == 1
-    dashed, entries, others = False, {}, {}  # the legend: the lines first, then baselines and references
+    titles = {panel: (panel if len(panels) > 1 else title) + ("" if one_estimate else f"\n{what[panel]}")
+              for panel in panels}
+    dashed, entries = draw_panels(used, panels, titles, (ylabels or {}, ylabel), baseline, references or {})
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    legend_title = "; ".join([*([next(iter(what.values()))] if one_estimate else []),
+                              *(["dashed: fewer runs"] if dashed else [])])
+    lay_out(fig, axes, used, entries, legend_title or None, title if len(panels) > 1 else None)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def draw_panels(used: list, panels: dict, titles: dict, ylabels: tuple[dict, str], baseline,
+                references: dict) -> tuple[bool, dict]:
+    """Each panel's lines, baseline and --reference curves on its axes. Returns whether a line is
+    dashed somewhere, and the legend's entries: the lines first, then baselines and references."""
+    from matplotlib.ticker import FuncFormatter
+    labels = sorted({label for curves in panels.values() for label in curves})
+    colors = {label: f"C{i % 10}" for i, label in enumerate(labels)}  # same group, same color
+    dashed, entries, others = False, {}, {}
     for ax, (panel, curves) in zip(used, panels.items()):
         for label, (frames, mean, ci, n, _env) in curves.items():
             dashed |= draw_line(ax, frames, mean, ci, n, colors[label], label)
@@ -395,41 +425,40 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple[float,
         if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
             ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
         last = max((c[0][-1] for c in curves.values()), default=None)
-        for i, ref in enumerate((references or {}).get(panel, [])):  # --reference: published curves
+        for i, ref in enumerate(references.get(panel, [])):  # --reference: published curves
             draw_reference(ax, ref, i, upto=last)
-        ax.set_title((panel if len(panels) > 1 else title) + ("" if one_estimate else f"\n{what[panel]}"))
+        ax.set_title(titles[panel])
         ax.set_xlabel("frames")
-        ax.set_ylabel((ylabels or {}).get(panel, ylabel))
+        ax.set_ylabel(ylabels[0].get(panel, ylabels[1]))
         ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
         ax.grid(alpha=0.3)
         rate_axis(ax, ax.get_ylabel())
         others.update((label, h) for h, label in zip(*ax.get_legend_handles_labels()) if label not in entries)
-    entries.update(others)
-    for ax in axes.flat[len(panels):]:
-        ax.axis("off")
-    suptitle = fig.suptitle(title) if len(panels) > 1 else None
-    legend_title = "; ".join([*([next(iter(what.values()))] if one_estimate else []),
-                              *(["dashed: fewer runs"] if dashed else [])])
+    return dashed, {**entries, **others}
+
+
+def lay_out(fig, axes, used: list, entries: dict, legend_title: str | None, suptitle: str | None):
+    """The legend (inside a single panel when short, else in the grid's empty slot or below), titles
+    wrapped to fit, and the axes kept AXES_HEIGHT tall."""
+    suptitle = fig.suptitle(suptitle) if suptitle is not None else None
     renderer = fig.canvas.get_renderer()
-    if len(panels) == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries), default=0) <= LABEL_INSIDE:
-        used[0].legend(fontsize="small", title=legend_title or None, title_fontsize="small")
+    if len(used) == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries), default=0) <= LABEL_INSIDE:
+        used[0].legend(fontsize="small", title=legend_title, title_fontsize="small")
     elif entries:
         fig.canvas.draw()  # the layout: the empty slot's size
-        spare = axes.flat[len(panels)] if len(panels) < axes.size else None
-        place_legend(fig, entries, legend_title or None, spare, renderer)
+        spare = axes.flat[len(used)] if len(used) < axes.size else None
+        place_legend(fig, entries, legend_title, spare, renderer)
     fig.canvas.draw()
     for ax in used:
         fit_text(ax.title, ax.get_window_extent(renderer).width, renderer)
     if suptitle is not None:
         fit_text(suptitle, 0.98 * fig.get_figwidth() * fig.dpi, renderer)
-    keep_axes_height(fig, used, rows)
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
+    keep_axes_height(fig, used, axes.shape[0])
 
 
 def summary_table(panels: dict, metric: str) -> str:
-    """One row per line: its runs (and how many reached its last frame, if not all) and its final value."""
+    """One row per line: its runs (and how many reached its last frame, if not all) and its final
+    value."""
     lines = [f"| env | group | seeds | last frame | final {metric} (mean ± 95% CI) |",
              "|---|---|---|---|---|"]
     for curves in panels.values():
@@ -441,20 +470,22 @@ def summary_table(panels: dict, metric: str) -> str:
     return "\n".join(lines)
 
 
-# ---------------------------------------------------------------- published reference curves: --reference
-# A published learning curve in DrQ-v2's format (facebookresearch/drqv2, curves/dmc_<task>.csv): one row
-# per seed and evaluation with columns seed, frame, episode_reward, and task and agent. A file without
-# a task column holds the task its name says (dmc_<task>.csv).
+# ---------------------------------------------------------------- published reference curves:
+# --reference A published learning curve in DrQ-v2's format (facebookresearch/drqv2,
+# curves/dmc_<task>.csv): one row per seed and evaluation with columns seed, frame, episode_reward,
+# and task and agent. A file without a task column holds the task its name says (dmc_<task>.csv).
 REFERENCE_COLUMNS = ("seed", "frame", "episode_reward")
 
 
 def task_key(name: str) -> str:
-    """Our env names and DrQ-v2's task names on one key: cartpole-balance_sparse = cartpole_balance_sparse."""
+    """Our env names and DrQ-v2's task names on one key: cartpole-balance_sparse =
+    cartpole_balance_sparse."""
     return name.strip().lower().replace("-", "_")
 
 
 def parse_reference(spec: str) -> tuple[str, str | None]:
-    """--reference PATH[:LABEL] -> (path, label or None); a path that exists as given keeps its colons."""
+    """--reference PATH[:LABEL] -> (path, label or None); a path that exists as given keeps its
+    colons."""
     path, sep, label = spec.rpartition(":")
     if os.path.exists(spec) or not sep or not path:
         return spec, None
@@ -462,8 +493,9 @@ def parse_reference(spec: str) -> tuple[str, str | None]:
 
 
 def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
-    """{task key: {"label", "frames", "mean", "min", "max", "seeds", "values"}} of a published curve file. Per task
-    its seeds are aligned on the frames they all have, as eval.csv runs are (aggregate)."""
+    """{task key: {"label", "frames", "mean", "min", "max", "seeds", "values"}} of a published curve
+    file. Per task its seeds are aligned on the frames they all have, as eval.csv runs are
+    (aggregate)."""
     if not os.path.isfile(path):
         raise PlotError(f"--reference {path}: no such file")
     file_task = os.path.splitext(os.path.basename(path))[0].removeprefix("dmc_")
@@ -472,8 +504,9 @@ def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
         reader = csv.DictReader(f)
         missing = [c for c in REFERENCE_COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
-            raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has columns "
-                            f"{', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv name)")
+            raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has "
+                            f"columns {', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv "
+                            "name)")
         for row in reader:
             task = task_key(row.get("task") or file_task)
             try:
@@ -501,8 +534,9 @@ def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
 
 
 def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]]) -> dict[str, list[dict]]:
-    """{panel: the reference curves drawn on it}: a reference goes on every panel holding a run on its
-    task. `references` are (path, load_reference(path)); one that matches no panel is an error."""
+    """{panel: the reference curves drawn on it}: a reference goes on every panel holding a run on
+    its task. `references` are (path, load_reference(path)); one that matches no panel is an
+    error."""
     drawn = {panel: [] for panel in panel_envs}
     for path, curves in references:
         matched = False
@@ -512,15 +546,16 @@ def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]
                 matched = True
         if not matched:
             plotted = ", ".join(sorted({e for envs in panel_envs.values() for e in envs}))
-            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no plotted env "
-                            f"({plotted})")
+            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no "
+                            f"plotted env ({plotted})")
     return drawn
 
 
 def draw_reference(ax, ref: dict, i: int = 0, upto: float | None = None):
-    """A published curve: the mean over its seeds and a band from its lowest to its highest seed, cut to
-    frames <= `upto` (the runs' last frame: a published curve usually goes on far beyond them, and its
-    later values would set the y range). The x range stays the runs' (once they span any frames)."""
+    """A published curve: the mean over its seeds and a band from its lowest to its highest seed,
+    cut to frames <= `upto` (the runs' last frame: a published curve usually goes on far beyond
+    them, and its later values would set the y range). The x range stays the runs' (once they span
+    any frames)."""
     xlim = ax.get_xlim()
     keep = slice(None) if upto is None else ref["frames"] <= upto
     frames = ref["frames"][keep]
@@ -537,16 +572,16 @@ def draw_reference(ax, ref: dict, i: int = 0, upto: float | None = None):
 # coloured and blended over the image. Beyond the paper, each channel's share of activation mass on
 # the robot, against the robot's share of the image.
 MAPS_STRIDE = 25  # agent steps between the frames shown
-# Where a unit of the 35 x 35 map looks: the trunk (3x3 stride 2, then three 3x3 stride 1, no padding)
-# gives unit j the input pixels 2j .. 2j + 14, centred on 2j + 7. The overlays stretch the map over
-# the whole image instead (the paper's resize), up to 7 px off at the borders.
+# Where a unit of the 35 x 35 map looks: the trunk (3x3 stride 2, then three 3x3 stride 1, no
+# padding) gives unit j the input pixels 2j .. 2j + 14, centred on 2j + 7. The overlays stretch the
+# map over the whole image instead (the paper's resize), up to 7 px off at the borders.
 RF_STRIDE, RF_OFFSET = 2, 7
-ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; < 0.5x: an environment channel
+# share > 2x the mask fraction: a robot channel; < 0.5x: an environment channel
+ROBOT, ENVIRONMENT = 2.0, 0.5
 
 
 def load_snapshot_run(run_dir: str):
     """(train.Config, snapshot) of a run directory; PlotError for anything that is not one."""
-    import cli
     import sear
     import train
     if not os.path.isfile(os.path.join(run_dir, "config.json")):
@@ -563,7 +598,6 @@ def load_snapshot_run(run_dir: str):
 
 def trained_agent(cfg, state, action_dim: int):
     import torch
-    import cli
     import sear
     import train
     agent = train.make_agent(cfg, action_dim, torch.device("cpu"))
@@ -577,7 +611,6 @@ def trained_agent(cfg, state, action_dim: int):
 def open_env(cfg):
     """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
     clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
-    import cli
     import experiment
     try:
         return experiment.make_run_env(cfg, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
@@ -628,7 +661,8 @@ def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
 
 def overlay_maps(image: np.ndarray, maps: np.ndarray, alpha: float = 0.5) -> np.ndarray:
     """Each channel of `maps` (C, h, w) as a heat map over `image` (H, W, 3) uint8: resized to H x W
-    (bilinear), normalised to [0, 1] per channel, coloured with jet, blended. -> (C, H, W, 3) uint8."""
+    (bilinear), normalised to [0, 1] per channel, coloured with jet, blended. -> (C, H, W, 3)
+    uint8."""
     import torch
     import torch.nn.functional as F
     from matplotlib import colormaps
@@ -653,7 +687,8 @@ def channel_grid(tiles: np.ndarray, cols: int = 8, pad: int = 2) -> np.ndarray:
 
 
 def robot_units(masks: np.ndarray, side: int) -> np.ndarray:
-    """The true mask at the centre of each map unit's receptive field: (N, H, W) -> (N, side, side)."""
+    """The true mask at the centre of each map unit's receptive field: (N, H, W) -> (N, side,
+    side)."""
     centres = RF_OFFSET + RF_STRIDE * np.arange(side)
     return masks[:, centres][:, :, centres]
 
@@ -705,15 +740,17 @@ def maps_figure(out: str, frames: dict, runs: list[dict], mask_fraction: float):
     for j, run in enumerate(runs):
         live = run["share"][~np.isnan(run["share"])]
         ax.hist(live, bins=bins, histtype="step", lw=1.5, color=f"C{j}",
-                label=f"{run['label']}: {run['robot']} robot, {run['environment']} environment channels")
+                label=f"{run['label']}: {run['robot']} robot, {run['environment']} environment "
+                      "channels")
     ax.axvline(mask_fraction, color="k", lw=1, label=f"mask fraction {mask_fraction:.3f}")
     for factor in (ROBOT, ENVIRONMENT):
         ax.axvline(factor * mask_fraction, color="k", lw=0.8, ls="--")
-    ax.set_xlabel("share of a channel's activation on the robot (dashed: 0.5x and 2x the mask fraction)")
+    ax.set_xlabel("share of a channel's activation on the robot (dashed: 0.5x and 2x the mask "
+                  "fraction)")
     ax.set_ylabel("channels")
     ax.legend(fontsize=7)
-    fig.suptitle("Last-convolution activation maps (ReLU, 32 x 35 x 35 resized to 84 x 84), channels sorted "
-                 "by share on robot", fontsize=10)
+    fig.suptitle("Last-convolution activation maps (ReLU, 32 x 35 x 35 resized to 84 x 84), "
+                 "channels sorted by share on robot", fontsize=10)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=100)
     plt.close(fig)
@@ -721,8 +758,8 @@ def maps_figure(out: str, frames: dict, runs: list[dict], mask_fraction: float):
 
 def maps_table(runs: list[dict], mask_fraction: float) -> str:
     lines = [f"mask fraction (robot units of the 35x35 map, over the frames): {mask_fraction:.4f}", "",
-             f"| run | method | trained frames | robot channels (share > {ROBOT:g}x) | environment channels "
-             f"(share < {ENVIRONMENT:g}x) | dead | median share |", "|---|---|---|---|---|---|---|"]
+             f"| run | method | trained frames | robot channels (share > {ROBOT:g}x) | environment "
+             f"channels (share < {ENVIRONMENT:g}x) | dead | median share |", "|---|---|---|---|---|---|---|"]
     for run in runs:
         live = run["share"][~np.isnan(run["share"])]
         median = f"{np.median(live):.4f}" if len(live) else "-"
@@ -732,14 +769,20 @@ def maps_table(runs: list[dict], mask_fraction: float) -> str:
 
 
 def maps_main(argv) -> int:
-    parser = OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's last "
-                           "convolution for one or more runs on the same frames (the paper's section 5), "
-                           "and each channel's share of activation on the robot.")
-    parser.add_argument("runs", nargs="+", help="run directories (config.json and snapshot.pt), all on one env")
-    parser.add_argument("--out", default="runs/maps.png", help="PNG to write (default runs/maps.png)")
-    parser.add_argument("--frames", type=int, default=2, help=f"frames to show, {MAPS_STRIDE} agent steps apart")
+    parser = cli.OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's "
+                                                                "last "
+                               "convolution for one or more runs on the same frames (the paper's "
+                               "section 5), and each channel's share of activation on the robot.")
+    parser.add_argument("runs", nargs="+", help="run directories (config.json and snapshot.pt), "
+                                                "all on one env")
+    parser.add_argument("--out", default="runs/maps.png", help="PNG to write (default "
+                                                               "runs/maps.png)")
+    parser.add_argument("--frames", type=int, default=2, help=f"frames to show, {MAPS_STRIDE} "
+                                                              "agent steps apart")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    args = parser.parse_args(argv)
+    args = parse(parser, argv)
+    if args is None:
+        return 2
     try:
         if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
             raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
@@ -749,9 +792,9 @@ def maps_main(argv) -> int:
         first = loaded[0][1]
         for d, cfg, _ in loaded[1:]:
             if (cfg.env, cfg.frame_stack) != (first.env, first.frame_stack):
-                raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), {loaded[0][0]} on "
-                                f"{first.env} (frame stack {first.frame_stack}): maps compare runs on the same frames")
-        import cli
+                raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), "
+                                f"{loaded[0][0]} on {first.env} (frame stack {first.frame_stack}): "
+                                "maps compare runs on the same frames")
         import torch
         torch.set_num_threads(cli.default_threads())
         env = open_env(first)
@@ -784,88 +827,127 @@ def maps_main(argv) -> int:
 
 
 # ---------------------------------------------------------------- CLI
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
+def build_parser(parser_class):
+    parser = parser_class(prog="plot.py", description=__doc__.split("\n\n")[0],
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
+    parser.add_argument("--out", default="runs/curves.png", help="PNG to write (default "
+                                                                 "runs/curves.png)")
+    parser.add_argument("--metric", default="return", help="return | success | any column of the "
+                                                           "CSV read (e.g. --csv train --metric "
+                                                           "dormant_ratio)")
+    parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to "
+                                                                                 "read")
+    parser.add_argument("--group", default="method", help="config keys, comma separated: "
+                                                          "method,env")
+    parser.add_argument("--title", default=None)
+    parser.add_argument("--per-task", action="store_true",
+                        help="task sets: one panel per task, from eval.csv's <metric>/<task> "
+                             "columns")
+    parser.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
+                        help="a dashed horizontal line, e.g. 1.6:random "
+                             "(benchmarks/random_policy.py)")
+    parser.add_argument("--reference", action="append", default=[], metavar="CSV[:LABEL]",
+                        help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and "
+                             "min-max band over its seeds, on the panels of its task; repeatable")
+    parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    return parser
+
+
+def parse(parser, argv):
+    """The arguments, or None after one line on stderr (`<prog>: error: ...`:
+    cli.OneLineParser's)."""
+    try:
+        return parser.parse_args(argv)
+    except cli.ConfigError as e:
+        print(f"{parser.prog}: error: {e}", file=sys.stderr)
+        return None
+
+
+def checked_args(args) -> tuple[list, tuple[float, str] | None, list[str]]:
+    """(--reference curves, --baseline, --group keys), read and checked before any run is."""
+    references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
+    baseline = None
+    if args.baseline is not None:
+        value, _, label = args.baseline.partition(":")
+        try:
+            baseline = (float(value), label or "baseline")
+        except ValueError:
+            raise PlotError("--baseline must be VALUE[:LABEL], e.g. 1.6:random; got "
+                            f"{args.baseline!r}") from None
+    if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
+        raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
+    keys = [k.strip() for k in args.group.split(",") if k.strip()]
+    if not keys:
+        raise PlotError("--group needs at least one config key, e.g. method")
+    if args.per_task and args.csv != "eval":
+        raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
+    return references, baseline, keys
+
+
+def load_runs(args) -> list[dict]:
+    """The runs the paths name (with --per-task one per task, and their means); a run without the
+    CSV yet is skipped with one line."""
+    runs = []
+    found = find_runs(args.paths)
+    for d in found:
+        try:
+            runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
+        except NoLogYet as e:  # one run stopped early must not hide all the others
+            print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
+    if not runs:
+        raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written "
+                        f"{args.csv}.csv yet")
+    return runs + (task_mean_runs(runs) if args.per_task else [])
+
+
+def panel_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
+    """{panel: runs}: one panel per env, unless env is already told apart by the lines (or there is
+    just one); with --per-task one per task (and env)."""
+    envs = sorted({env_of(r) for r in runs})
+    by_env = len(envs) > 1 and "env" not in keys
+    keyed = {}
+    for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
+        key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
+        keyed.setdefault(key or ", ".join(envs), []).append(r)
+    return keyed
+
+
+def panel_lines(panel: str, members: list[dict], keys: list[str], interpolate: bool) -> dict:
+    """{label: (frames, mean, ci, runs per frame, envs)} of a panel's lines."""
+    lines = {}
+    differ = differing_settings(members, keys)
+    for label, group in (line for g in group_runs(members, keys).items()
+                         for line in split_by_config(*g, differ).items()):
+        seeds = [r["config"].get("seed") for r in group]
+        if len(set(seeds)) < len(seeds):
+            print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
+        warn_uneven_ends(f"{label} ({panel})", group)
+        curves = [(r["frames"], r["values"]) for r in group]
+        envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
+        if "task" in group[0]:  # --per-task: the table names the task too
+            envs_of_group += f": {group[0]['task']}"
+        lines[label] = (*aggregate(curves, interpolate), coverage(curves, interpolate), envs_of_group)
+    return lines
 
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     if argv[:1] == ["maps"]:  # a folder of runs named "maps" is given as ./maps
         return maps_main(argv[1:])
-    parser = OneLineParser(prog="plot.py", description=__doc__.split("\n\n")[0],
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
-    parser.add_argument("--out", default="runs/curves.png", help="PNG to write (default runs/curves.png)")
-    parser.add_argument("--metric", default="return", help="return | success | any column of the CSV read "
-                                                           "(e.g. --csv train --metric dormant_ratio)")
-    parser.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
-    parser.add_argument("--group", default="method", help="config keys, comma separated: method,env")
-    parser.add_argument("--title", default=None)
-    parser.add_argument("--per-task", action="store_true",
-                        help="task sets: one panel per task, from eval.csv's <metric>/<task> columns")
-    parser.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
-                        help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
-    parser.add_argument("--reference", action="append", default=[], metavar="CSV[:LABEL]",
-                        help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and min-max "
-                             "band over its seeds, on the panels of its task; repeatable")
-    parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    args = parser.parse_args(argv)
+    args = parse(build_parser(cli.OneLineParser), argv)
+    if args is None:
+        return 2
     try:
-        references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
-        baseline = None
-        if args.baseline is not None:
-            value, _, label = args.baseline.partition(":")
-            try:
-                baseline = (float(value), label or "baseline")
-            except ValueError:
-                raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {args.baseline!r}") from None
-        if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
-            raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
-        keys = [k.strip() for k in args.group.split(",") if k.strip()]
-        if not keys:
-            raise PlotError("--group needs at least one config key, e.g. method")
-        if args.per_task and args.csv != "eval":
-            raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
-        runs = []
-        found = find_runs(args.paths)
-        for d in found:
-            try:
-                runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
-            except NoLogYet as e:  # one run stopped early must not hide all the others
-                print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
-        if not runs:
-            raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
-        if args.per_task:
-            runs += task_mean_runs(runs)
-        envs = sorted({env_of(r) for r in runs})
-        # One subplot per env, unless env is already told apart by the lines (or there is just one);
-        # with --per-task one per task (and env).
-        by_env = len(envs) > 1 and "env" not in keys
-        keyed = {}
-        for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
-            key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
-            keyed.setdefault(key or ", ".join(envs), []).append(r)
-        panels = {}
-        for panel, members in keyed.items():
-            panels[panel] = {}
-            differ = differing_settings(members, keys)
-            for label, group in (line for g in group_runs(members, keys).items()
-                                 for line in split_by_config(*g, differ).items()):
-                seeds = [r["config"].get("seed") for r in group]
-                if len(set(seeds)) < len(seeds):
-                    print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
-                warn_uneven_ends(f"{label} ({panel})", group)
-                curves = [(r["frames"], r["values"]) for r in group]
-                envs_of_group = ", ".join(sorted({env_of(r) for r in group}))
-                if "task" in group[0]:  # --per-task: the table names the task too
-                    envs_of_group += f": {group[0]['task']}"
-                interpolate = args.csv == "train"
-                panels[panel][label] = (*aggregate(curves, interpolate), coverage(curves, interpolate),
-                                        envs_of_group)
+        references, baseline, keys = checked_args(args)
+        keyed = panel_runs(load_runs(args), keys)
+        panels = {panel: panel_lines(panel, members, keys, args.csv == "train")
+                  for panel, members in keyed.items()}
+        envs = sorted({env_of(r) for members in keyed.values() for r in members})
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else args.metric}"
         title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references)
+        drawn = references_for({panel: {env_of(r) for r in members} for panel, members in keyed.items()},
+                               references)
         plot(panels, args.out, ylabel, title, baseline, drawn)
     except PlotError as e:
         print(f"plot.py: error: {e}", file=sys.stderr)

@@ -393,43 +393,46 @@ class LearnedMaskIoU(gym.Wrapper):
 # ================================================================================================
 # CLI
 # ================================================================================================
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def parse_channels(text: str) -> tuple[int, ...]:
     try:
         channels = tuple(int(c) for c in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") \
+            from None
     if not channels or min(channels) < 1:
         raise argparse.ArgumentTypeError(f"channels must be positive, got {text!r}")
     return channels
 
 
-def build_parser() -> OneLineParser:
-    parser = OneLineParser(prog="segment.py", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
+def build_parser() -> cli.OneLineParser:
+    """segment.py's commands and flags; a bad one is a cli.ConfigError (one line)."""
+    parser = cli.OneLineParser(prog="segment.py", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=cli.OneLineParser)
     train = sub.add_parser("train", help="train a mask model from labelled frames and save it")
     source = train.add_mutually_exclusive_group(required=True)
     source.add_argument("--folder", help="folder of <name>.png + <name>_mask.png pairs")
-    source.add_argument("--env", help="a suite (see envs.py --list): random-action frames, simulator masks as labels")
+    source.add_argument("--env", help="a suite (see envs.py --list): random-action frames, simulator "
+                                      "masks as labels")
     train.add_argument("--out", required=True, help="model file to write (.pt)")
-    train.add_argument("--labels", type=int, default=100, help="--env: number of labelled frames (default 100)")
+    train.add_argument("--labels", type=int, default=100,
+                       help="--env: number of labelled frames (default 100)")
     train.add_argument("--holdout", type=float, default=0.2,
-                       help="--folder: fraction of the pairs held out to report IoU on (default 0.2)")
+                       help="--folder: fraction of the pairs held out to report IoU on "
+                            "(default 0.2)")
     train.add_argument("--steps", type=int, default=600, help="Adam steps (default 600)")
     train.add_argument("--batch-size", type=int, default=16)
     train.add_argument("--lr", type=float, default=1e-3)
     train.add_argument("--channels", type=parse_channels, default=(8, 16, 32),
                        help="U-Net widths per level (default 8,16,32)")
     train.add_argument("--seed", type=int, default=0)
-    train.add_argument("--threads", type=int, default=0, help="torch threads (0 = $OMP_NUM_THREADS or all cores)")
+    train.add_argument("--threads", type=int, default=0,
+                       help="torch threads (0 = $OMP_NUM_THREADS or all cores)")
     train.add_argument("--force", action="store_true",
-                       help=f"overwrite an existing --out, and write the model even if its held-out IoU is below "
-                            f"{IOU_FLOOR} (the file records it; sear.py then warns instead of refusing it)")
-    export = sub.add_parser("export", help="write a suite's frames and simulator masks as a labels folder")
+                       help=f"overwrite an existing --out, and write the model even if its held-out "
+                            f"IoU is below {IOU_FLOOR} (the file records it; sear.py then warns "
+                            f"instead of refusing it)")
+    export = sub.add_parser("export",
+                            help="write a suite's frames and simulator masks as a labels folder")
     export.add_argument("--env", required=True)
     export.add_argument("--labels", type=int, default=100)
     export.add_argument("--out", required=True, help="new folder for the PNG pairs")
@@ -581,10 +584,10 @@ def run_export(args) -> None:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
     try:
+        args = build_parser().parse_args(argv)
         run_train(args) if args.command == "train" else run_export(args)
-    except (SegmentError, cli.StorageError) as e:
+    except (SegmentError, cli.StorageError, cli.ConfigError) as e:
         print(f"segment.py: error: {e}", file=sys.stderr)
         return 2
     return 0

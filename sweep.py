@@ -7,14 +7,18 @@ their last snapshot, and no key ever runs twice at once.
 Usage:
   python sweep.py --grid kitchen                        # a named grid of the paper (see --help)
   python sweep.py --envs walker-walk cup-catch --methods sear drq --seeds 1-5 -- --frames 100000
-  python sweep.py --envs cartpole-balance_sparse --methods drq drq+drm sear sear+drm   # METHOD+drm: with --drm
-  python sweep.py --grid kitchen --methods sear sear+drm    # a grid's variant, and the same with --drm (DrM)
-  python sweep.py --grid kitchen --status               # queued / running / done / failed (the flags the
-                                                        # sweep ran with need not be repeated: sweep.json has them)
-  python sweep.py --grid kitchen --report               # per task mean +- 95% CI; over tasks IQM (rliable)
+  python sweep.py --envs cartpole-balance_sparse --methods drq drq+drm sear sear+drm
+                                                        # METHOD+drm: METHOD with --drm
+  python sweep.py --grid kitchen --methods sear sear+drm    # a grid's variant, and with --drm
+  python sweep.py --grid kitchen --status               # queued / running / done / failed (the
+                                                        # flags the sweep ran with need not be
+                                                        # repeated: sweep.json has them)
+  python sweep.py --grid kitchen --report               # per task mean +- 95% CI; over tasks IQM
+                                                        # (rliable)
   cd sweeps/kitchen && python ../../sweep.py --status   # inside a sweep's folder: that sweep
-  python sweep.py --grid kitchen --engine slurm --partition gpu   # a SLURM array; re-runs of the sweep
-                                                        # stay on SLURM (sweep.json); default: this machine
+  python sweep.py --grid kitchen --engine slurm --partition gpu   # a SLURM array; re-runs of the
+                                                        # sweep stay on SLURM (sweep.json); default:
+                                                        # this machine
 
 Flags that sweep.py does not know go to sear.py (after `--` or anywhere on the line); sear.py's
 own parser checks them before anything is created, so a typo fails the whole sweep at once. A flag
@@ -23,13 +27,15 @@ Memory per job (SLURM's --mem; locally, how many run at once): a measured run's 
 method, batch and replay, plus 25% (--mem-gb sets it); a job that no node holds fails up front.
 
 Sweep folder: <out>/<sweep>/ (--name; default the grid's name, else custom)
-  sweep.json    the record of what was submitted there: per sweep (grid and sear.py flags) its jobs, so
-                that --status and --report need only the folder (--name or --grid), not the flags again;
-                and the engine the folder's sweeps ran on, which a re-run without --engine keeps
+  sweep.json    the record of what was submitted there: per sweep (grid and sear.py flags) its
+                jobs, so that --status and --report need only the folder (--name or --grid), not
+                the flags again; and the engine the folder's sweeps ran on, which a re-run without
+                --engine keeps
 Job directory: <out>/<sweep>/<env>__<method>__<seed>__<hash of the other sear.py flags>/
   job.json      what the job is: the sear.py arguments of a fresh run and of a resume
   run/          sear.py's --run-root: exactly one run directory
-  stdout.log    sear.py's stdout, one "=== attempt" header per start; stderr.log likewise
+  stdout.log    sear.py's stdout, after a "=== attempt" header line at every start; stderr.log
+                likewise
   status.json   queued | running | done | failed | interrupted, the exit code, the last stderr line
   lock          pid, host and job id of the process that runs the job (a dead holder is taken over)
   DONE          written after sear.py exits 0: a re-run skips the job
@@ -95,8 +101,8 @@ def plain(*methods):
 
 
 def pick_variants(wanted: tuple[str, ...] | None, have: tuple[Variant, ...]) -> list[Variant]:
-    """A grid's variants named in `wanted` (all if None), in the grid's order; NAME+drm is variant NAME
-    run with --drm (drm.py: DrQ becomes DrM, SEAR becomes SEAR + DrM)."""
+    """A grid's variants named in `wanted` (all if None), in the grid's order; NAME+drm is variant
+    NAME run with --drm (drm.py: DrQ becomes DrM, SEAR becomes SEAR + DrM)."""
     import cli  # stdlib only, as sear_config's imports: late
     picked = []
     for v in have:
@@ -134,7 +140,8 @@ GRIDS = {
         # distracting.yaml: difficulty medium, background distraction only (sear.py's defaults);
         # walker's 1-step returns and batch 512 are the authors' recipe (--recipe authors).
         flags=PAPER_FRAMES, metric="return",
-        doc="Distracting Control walker-walk and cup-catch (add --backgrounds davis for the paper's DAVIS videos)"),
+        doc="Distracting Control walker-walk and cup-catch (add --backgrounds davis for the "
+            "paper's DAVIS videos)"),
     "ablations": Grid(
         envs=tuple(f"metaworld-{t}" for t in ABLATION_TASKS), flags=PAPER_FRAMES, metric="success",
         variants=(Variant("sear", "sear"), Variant("drq", "drq"),
@@ -146,18 +153,21 @@ GRIDS = {
                   Variant("sear-no-recon", "sear", ("--recon-coef", "0")),
                   Variant("sear-no-mask", "sear", ("--mask-coef", "0"))),
         doc="noisy / approximate masks, rgbm, no split, c1/c2 on 3 Meta-World tasks"),
-    # Beyond the paper: DEAR (Pore et al. 2024) on its two benchmarks, with both signs of its cosine term
-    # (the released code pulls the halves together, its paper separates them: docs/dear.md).
+    # Beyond the paper: DEAR (Pore et al. 2024) on its two benchmarks, with both signs of its cosine
+    # term (the released code pulls the halves together, its paper separates them: docs/dear.md).
     "dear": Grid(
         envs=("walker-walk-distracting", "cup-catch-distracting"), variants=DEAR, flags=PAPER_FRAMES,
-        metric="return", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Distracting Control walker-walk, cup-catch"),
+        metric="return", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Distracting Control "
+                             "walker-walk, cup-catch"),
     "dear-kitchen": Grid(
         envs=("kitchen-kettle", "kitchen-light", "kitchen-slider"), variants=DEAR, flags=PAPER_FRAMES,
-        metric="success", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Franka Kitchen kettle, light, slider"),
+        metric="success", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Franka Kitchen kettle, "
+                              "light, slider"),
 }
 # Named so that asking for them gives a clear answer instead of "unknown grid".
-NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) are two "
-                       "dependent stages; run them with sear.py as EXPERIMENTS.md, 'Multi-task and transfer', shows"}
+NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) "
+                       "are two dependent stages; run them with sear.py as EXPERIMENTS.md, "
+                       "'Multi-task and transfer', shows"}
 
 
 # ================================================================================================
@@ -216,7 +226,8 @@ def parse_names(tokens: list[str]) -> tuple[str, ...]:
 
 
 def sear_classes():
-    """(Config, METHODS) of the run sear.py starts (train.py's): the one place that names the module holding them."""
+    """(Config, METHODS) of the run sear.py starts (train.py's): the one place that names the module
+    holding them."""
     import train
     return train.Config, train.METHODS
 
@@ -232,9 +243,9 @@ def sweep_flag_names() -> set[str]:
 
 
 def check_passthrough(tokens: list[str]) -> None:
-    """Exact sear.py flag names only: argparse would take an abbreviation such as --see for --seed. A name
-    neither sweep.py nor sear.py has is answered with the closest of both: --stauts is a typo of --status,
-    not a sear.py flag."""
+    """Exact sear.py flag names only: argparse would take an abbreviation such as --see for --seed.
+    A name neither sweep.py nor sear.py has is answered with the closest of both: --stauts is a typo
+    of --status, not a sear.py flag."""
     if not any(tok.startswith("--") for tok in tokens):
         return  # no sear.py import (torch) for --status / --report without flags
     known, ours = sear_flag_names(), sweep_flag_names()
@@ -263,14 +274,17 @@ def sear_config(argv: list[str], what: str):
             cfg, run, _ = cli.parse_args(argv, Config, methods)
         envs.default_action_repeat(cfg.env)    # unknown env names fail here, not hours later
     except SystemExit:
-        raise SweepError(f"sear.py rejects {what}: {err.getvalue().strip().removeprefix('sear.py: error: ')}")
+        raise SweepError(f"sear.py rejects {what}: "
+                         f"{err.getvalue().strip().removeprefix('sear.py: error: ')}")
     except (cli.ConfigError, envs.EnvError) as e:
         raise SweepError(f"sear.py rejects {what}: {e}")
-    return types.SimpleNamespace(**cli.config_dict(cfg, run))  # every setting, as config.json has them
+    # every setting, as config.json has them
+    return types.SimpleNamespace(**cli.config_dict(cfg, run))
 
 
 def config_key(cfg) -> str:
-    """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys alone."""
+    """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys
+    alone."""
     import cli
     defaults = cli.config_dict(sear_classes()[0](), cli.RunConfig())
     diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
@@ -298,7 +312,8 @@ def sweep_name(args) -> str:
     """The sweep's folder under --out: --name, else the grid's name, else custom."""
     sweep = args.name or args.grid or "custom"
     if not SAFE_NAME.fullmatch(sweep) or sweep.endswith(".aside"):
-        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_', '+' or '-' (and not end in .aside)")
+        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_', '+' or '-' (and not "
+                         "end in .aside)")
     return sweep
 
 
@@ -323,7 +338,8 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
         for given, have, what in ((envs, grid.envs, "env"), (wanted, [v.label for v in grid.variants], "method")):
             extra = [x for x in (given or ()) if x not in have and cli.split_method_label(x)[0] not in have]
             if extra:
-                raise SweepError(f"grid '{args.grid}' has no {what} {extra[0]}; it has {', '.join(have)}"
+                raise SweepError(f"grid '{args.grid}' has no {what} {extra[0]}; it has "
+                                 f"{', '.join(have)}"
                                  + (" (each also as NAME+drm)" if what == "method" else ""))
         envs = envs or grid.envs
         variants = pick_variants(wanted, grid.variants)
@@ -495,9 +511,10 @@ def is_done(job_dir: str) -> bool:
     return os.path.exists(os.path.join(job_dir, "DONE"))
 
 
-# The sweep folder's record (sweep.json): {"engine", "sweeps": [{"grid", "flags", "command", "jobs"}]}, one
-# entry per grid and sear.py flags submitted to the folder, its jobs the JobSpecs of every submission with
-# them; "engine" (local or slurm) the one the folder's sweeps last ran on, and run on again unless --engine.
+# The sweep folder's record (sweep.json): {"engine", "sweeps": [{"grid", "flags", "command",
+# "jobs"}]}, one entry per grid and sear.py flags submitted to the folder, its jobs the JobSpecs of
+# every submission with them; "engine" (local or slurm) the one the folder's sweeps last ran on, and
+# run on again unless --engine.
 RECORD = "sweep.json"
 
 
@@ -506,8 +523,8 @@ def read_record(sweep_dir: str) -> list[dict]:
 
 
 def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
-    """(engine, where it is written) of a sweep folder: its record, else (folders from before the record
-    named it) a job queued or run on SLURM; (None, "") for a new folder."""
+    """(engine, where it is written) of a sweep folder: its record, else (folders from before the
+    record named it) a job queued or run on SLURM; (None, "") for a new folder."""
     engine = (read_json(os.path.join(sweep_dir, RECORD)) or {}).get("engine")
     if engine in ("local", "slurm"):
         return engine, f"{os.path.join(sweep_dir, RECORD)} records it"
@@ -520,8 +537,9 @@ def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
 
 def record_sweep(sweep_dir: str, grid: str | None, flags: list[str], command: list[str], specs: list[JobSpec],
                  engine: str) -> int:
-    """Add `specs` to the folder's record, under their grid and sear.py flags: the same sweep run again
-    (say for more seeds) adds its jobs to its entry; other flags make a second entry. -> sweeps recorded."""
+    """Add `specs` to the folder's record, under their grid and sear.py flags: the same sweep run
+    again (say for more seeds) adds its jobs to its entry; other flags make a second entry. ->
+    sweeps recorded."""
     os.makedirs(sweep_dir, exist_ok=True)
     with guard(sweep_dir):  # two drivers submitting to one folder at once both end up in the record
         sweeps = read_record(sweep_dir)
@@ -618,7 +636,7 @@ class SearJob(submitit.helpers.Checkpointable):
         sweep_dir, job = os.path.split(os.path.normpath(self.job_dir))
         dest = base = os.path.join(f"{sweep_dir}.aside", job, os.path.basename(run))
         k = 1
-        while os.path.exists(dest):  # an earlier attempt of the same second: never overwrite it
+        while os.path.exists(dest):  # an earlier start in the same second: never overwrite it
             dest, k = f"{base}~{k}", k + 1
         os.makedirs(os.path.dirname(dest), exist_ok=True)
         shutil.move(run, dest)
@@ -636,8 +654,9 @@ def cpu_count() -> int:
 
 
 def pick_engine(args) -> tuple[str, str]:
-    """(engine, why): --engine, else the one the sweep's folder records, else this machine. Never SLURM
-    because srun happens to be on the PATH: that sent a login node's test sweep to a queue unasked."""
+    """(engine, why): --engine, else the one the sweep's folder records, else this machine. Never
+    SLURM because srun happens to be on the PATH: that sent a login node's test sweep to a queue
+    unasked."""
     srun = shutil.which("srun") is not None
     recorded, where = recorded_engine(os.path.join(args.out, args.sweep))
     if args.engine:
@@ -646,7 +665,8 @@ def pick_engine(args) -> tuple[str, str]:
         other = "local runs it here" if recorded == "slurm" else "slurm submits it to SLURM"
         engine, why = recorded, f"{where}; --engine {other}"
     else:
-        engine, why = "local", "default" + ("; --engine slurm to submit to SLURM, whose srun is on the PATH"
+        engine, why = "local", "default" + ("; --engine slurm to submit to SLURM, whose srun is on "
+                                            "the PATH"
                                             if srun else "")
     if engine == "slurm" and not srun:
         raise SweepError(f"engine slurm ({why}), but srun is not on this machine's PATH")
@@ -662,7 +682,8 @@ def pick_engine(args) -> tuple[str, str]:
 
 
 def gres_gpus(gres: str) -> int:
-    """GPUs in one of sinfo's %G fields: 'gpu:4', 'gpu:a100:8(S:0-1)', 'gpu:a:2,gpu:b:2,mps:100', '(null)'."""
+    """GPUs in one of sinfo's %G fields: 'gpu:4', 'gpu:a100:8(S:0-1)', 'gpu:a:2,gpu:b:2,mps:100',
+    '(null)'."""
     return sum(int(n) for n in re.findall(r"(?:^|,)gpu(?::[^:,(]+)?:(\d+)", gres))
 
 
@@ -672,7 +693,8 @@ class Partition:
     name: str    # for messages: "partition gpu" or "the default partition"
     gpus: int    # the most GPUs one node has
     cpus: int    # the most CPUs one node has
-    mem_mb: int  # the most memory one node has (RealMemory, MB as SLURM counts them: 1024 to its GB)
+    # the most memory one node has (RealMemory, MB as SLURM counts them: 1024 to its GB)
+    mem_mb: int
 
 
 def slurm_partition(partition: str | None) -> Partition | None:
@@ -711,8 +733,8 @@ def local_gpus() -> list[str]:
 
 def job_gpus(args, engine: str, part: Partition | None) -> tuple[int, str]:
     """(GPUs per job, what the header says about them). The default is what this machine or the
-    partition can give: 1 where there are GPUs, else none; an explicit count it cannot give fails here,
-    before anything is created."""
+    partition can give: 1 where there are GPUs, else none; an explicit count it cannot give fails
+    here, before anything is created."""
     asked = args.gpus_per_job
     if engine == "local":
         have = len(local_gpus())
@@ -734,19 +756,22 @@ def job_gpus(args, engine: str, part: Partition | None) -> tuple[int, str]:
 def check_cpus(args, part: Partition | None) -> None:
     """A job that asks for more CPUs than any node has would stay pending for ever."""
     if part is not None and part.cpus and args.threads > part.cpus:
-        raise SweepError(f"--threads {args.threads}: the nodes of {part.name} have at most {part.cpus} CPUs "
-                         f"(sinfo), so the jobs would never start")
+        raise SweepError(f"--threads {args.threads}: the nodes of {part.name} have at most "
+                         f"{part.cpus} CPUs (sinfo), so the jobs would never start")
 
 
-# What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the CPU): 0.89 GB
-# until the first update, 2.66 GB at the peak of SEAR's batch-256 updates, the replay still nearly empty;
-# then the replay, ReplayBuffer.bytes_per_transition for each transition it holds. The DrQ encoder's
-# methods (drq, rgbm) peak 0.65 GB lower (bench_agent.py's peak RSS at batch 256: drq 1.52, sear 2.17 GB);
-# the other methods, unmeasured, count as SEAR. What the updates add scales with the batch.
+# What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the
+# CPU): 0.89 GB until the first update, 2.66 GB at the peak of SEAR's batch-256 updates, the replay
+# still nearly empty; then the replay, ReplayBuffer.bytes_per_transition for each transition it
+# holds. The DrQ encoder's methods (drq, rgbm) peak 0.65 GB lower (bench_agent.py's peak RSS at
+# batch 256: drq 1.52, sear 2.17 GB); the other methods, unmeasured, count as SEAR. What the updates
+# add scales with the batch.
 START_GB = 0.89
 PEAK_GB = {"pooled": 2.66, "drq": 2.66 - 0.65}  # by sear.METHODS' encoder, at batch 256
-REPLAY_BYTES = 22_168  # per transition at 84x84 with Adroit's 28 actions, the most of any task (walker: 22,080)
-HEADROOM = 1.25        # one run's peak; another task, renderer or allocator's slack moves it: a quarter more
+# per transition at 84x84 with Adroit's 28 actions, the most of any task (walker: 22,080)
+REPLAY_BYTES = 22_168
+# one run's peak; another task, renderer or allocator's slack moves it: a quarter more
+HEADROOM = 1.25
 
 
 def run_memory(cfg) -> tuple[float, float, int, str]:
@@ -756,9 +781,9 @@ def run_memory(cfg) -> tuple[float, float, int, str]:
     agent = START_GB + (PEAK_GB[encoder] - START_GB) * cfg.batch_size / 256
     held = min(cfg.replay_size, cfg.frames // (cfg.action_repeat or envs.default_action_repeat(cfg.env)))
     scaled = "" if cfg.batch_size == 256 else f" scaled to batch {cfg.batch_size}"
-    how = (f"{cfg.method}: {'drq' if encoder == 'drq' else 'sear'}'s measured peak at batch 256{scaled}, "
-           f"{agent:.2f} GB, + a replay of {held:,} transitions x {REPLAY_BYTES / 1e3:.0f} kB, "
-           f"{held * REPLAY_BYTES / 1e9:.2f} GB, + {HEADROOM - 1:.0%}")
+    how = (f"{cfg.method}: {'drq' if encoder == 'drq' else 'sear'}'s measured peak at batch "
+           f"256{scaled}, {agent:.2f} GB, + a replay of {held:,} transitions x "
+           f"{REPLAY_BYTES / 1e3:.0f} kB, {held * REPLAY_BYTES / 1e9:.2f} GB, + {HEADROOM - 1:.0%}")
     return agent + held * REPLAY_BYTES / 1e9, agent, held, how
 
 
@@ -767,10 +792,12 @@ def local_memory_gb() -> float:
 
 
 def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec]) -> tuple[int, float | None, str]:
-    """(GB per job, GB of the largest node or None when unknown, the line that says both and why): --mem-gb,
-    else the largest job's measured peak plus headroom. One that no node holds fails here, in one line."""
+    """(GB per job, GB of the largest node or None when unknown, the line that says both and why):
+    --mem-gb, else the largest job's measured peak plus headroom. One that no node holds fails here,
+    in one line."""
     distinct = {(s.env, s.variant, s.key): s for s in specs}.values()  # the seed changes nothing
-    with contextlib.redirect_stdout(io.StringIO()):  # the recipe's notes, printed once already by plan()
+    # the recipe's notes, printed once already by plan()
+    with contextlib.redirect_stdout(io.StringIO()):
         peak, agent, held, how = max(run_memory(sear_config(list(s.args), s.name)) for s in distinct)
     need = max(1, math.ceil(peak * HEADROOM))
     asked = args.mem_gb or need
@@ -784,7 +811,8 @@ def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec]) 
     if node is not None and asked > node:
         if args.mem_gb:
             raise SweepError(f"--mem-gb {asked}: {have}")
-        fits = int((math.floor(node) / HEADROOM - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000  # whole GB asked
+        # whole GB asked
+        fits = int((math.floor(node) / HEADROOM - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000
         hint = f"; --replay-size {fits} fits" if 0 < fits < held else ""
         raise SweepError(f"a job needs {need} GB ({how}), but {have}{hint}")
     why = f"--mem-gb; the estimate is {need} GB" if args.mem_gb else f"{how}; --mem-gb sets it"
@@ -794,7 +822,8 @@ def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec]) 
 def make_executor(args, engine: str, folder: str, gpus: int, mem_gb: int | None):
     executor = submitit.AutoExecutor(folder=folder, cluster=engine)
     # Locally each job gets its GPUs through CUDA_VISIBLE_DEVICES (SearJob.devices), not submitit's
-    # (which would give every job the same first ones); on SLURM, no GPU request unless there are GPUs.
+    # (which would give every job the same first ones); on SLURM, no GPU request unless there are
+    # GPUs.
     params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", cpus_per_task=args.threads,
                   gpus_per_node=(gpus or None) if engine != "local" else 0, mem_gb=mem_gb,
                   slurm_partition=args.partition, slurm_account=args.account,
@@ -914,22 +943,23 @@ def status_table(out: str, specs: list[JobSpec]) -> str:
 # ================================================================================================
 # 7. Report: per task plot.py's mean +- 95% CI over seeds; over the tasks rliable's IQM and mean
 # ================================================================================================
-# Stratified-bootstrap resamples of the across-task CIs. For one method of a grid (5 seeds x 10 tasks x
-# 250 evaluations) on 2 busy cores, rliable's default of 50,000 took 41 s, 10,000 took 10 s.
+# Stratified-bootstrap resamples of the across-task CIs. For one method of a grid (5 seeds x 10
+# tasks x 250 evaluations) on 2 busy cores, rliable's default of 50,000 took 41 s, 10,000 took 10 s.
 BOOTSTRAP_REPS = 10_000
 DM_CONTROL_STEPS = 1000  # control steps of a dm_control episode, each rewarded in [0, 1]
 
 
 def dm_control_max(config: dict) -> float:
-    """The highest return of a dm_control episode: 1 per control step (--max-episode-steps cuts them)."""
+    """The highest return of a dm_control episode: 1 per control step (--max-episode-steps cuts
+    them)."""
     steps = config.get("max_episode_steps") or 0
     return float(min(DM_CONTROL_STEPS, steps * config.get("action_repeat", 1)) if steps else DM_CONTROL_STEPS)
 
 
 def normalisation(env: str, runs: list[dict], metric: str) -> tuple[list[tuple[float, float]], str]:
-    """(low, high) of each run's scores, so that (score - low) / (high - low) compares across tasks, and
-    what the report says: success rates as they are, dm_control returns by the task's maximum, any
-    other return min-max over this sweep's evaluations of the task."""
+    """(low, high) of each run's scores, so that (score - low) / (high - low) compares across tasks,
+    and what the report says: success rates as they are, dm_control returns by the task's maximum,
+    any other return min-max over this sweep's evaluations of the task."""
     import envs
     if metric == "success":
         return [(0.0, 1.0)] * len(runs), "success rate, as it is"
@@ -945,14 +975,14 @@ def normalisation(env: str, runs: list[dict], metric: str) -> tuple[list[tuple[f
 
 
 def across_tasks(scores: dict[str, np.ndarray]) -> dict[str, dict]:
-    """rliable's IQM and mean with stratified-bootstrap 95% CIs (runs resampled within each task), at
-    every frame: scores[method] is (seeds, tasks, frames) of normalised scores. -> {method: {"iqm",
-    "iqm_ci", "mean", "mean_ci"}}, the CIs (2, frames) bounds."""
+    """rliable's IQM and mean with stratified-bootstrap 95% CIs (runs resampled within each task),
+    at every frame: scores[method] is (seeds, tasks, frames) of normalised scores. -> {method:
+    {"iqm", "iqm_ci", "mean", "mean_ci"}}, the CIs (2, frames) bounds."""
     from rliable import library as rly
 
     def iqm_and_mean(x):
-        # rliable's metrics.aggregate_iqm (scipy's trim_mean, 25% off each end) and aggregate_mean at
-        # every frame at once: trim_mean's own checks cost 2 ms a call, times 10,000 resamples.
+        # rliable's metrics.aggregate_iqm (scipy's trim_mean, 25% off each end) and aggregate_mean
+        # at every frame at once: trim_mean's own checks cost 2 ms a call, times 10,000 resamples.
         flat = np.sort(x.reshape(-1, x.shape[-1]), axis=0)
         cut = int(0.25 * len(flat))
         return np.concatenate([flat[cut:len(flat) - cut].mean(axis=0), flat.mean(axis=0)])
@@ -968,20 +998,55 @@ def across_tasks(scores: dict[str, np.ndarray]) -> dict[str, dict]:
 
 
 def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> str | None:
-    """Per task: mean +- 95% CI over seeds for each method (raw scores). Over the tasks: IQM and mean
-    of the scores normalised per task (normalisation()), with rliable's stratified-bootstrap 95% CIs
-    over the seeds finished on every task. Only finished runs count. Writes <out>/<sweep>/report.png
-    and report.md; returns the tables."""
+    """Per task: mean +- 95% CI over seeds for each method (raw scores). Over the tasks: IQM and
+    mean of the scores normalised per task (normalisation()), with rliable's stratified-bootstrap
+    95% CIs over the seeds finished on every task. Only finished runs count. Writes
+    <out>/<sweep>/report.png and report.md; returns the tables."""
     import plot
-    finished = []
-    for spec in specs:
-        d = os.path.join(out, spec.sweep, spec.name)
-        if is_done(d) and len(run_dirs(d)) == 1:
-            finished.append((spec, run_dirs(d)[0]))
+    finished = [(spec, run_dirs(d)[0]) for spec, d in ((s, os.path.join(out, s.sweep, s.name)) for s in specs)
+                if is_done(d) and len(run_dirs(d)) == 1]
     if not finished:
         print("report: no finished runs yet")
         return None
-    if metric is None:  # a success rate where every run has one, else the return
+    metric, runs = finished_runs(finished, metric)
+    envs = [e for e in dict.fromkeys(s.env for s in specs) if any(k[0] == e for k in runs)]
+    variants = list(dict.fromkeys(s.variant for s in specs))
+    if not envs:
+        return None
+    panels = {env: {v: (*plot.aggregate(curves), plot.coverage(curves), env) for v in variants
+                    if (curves := [(r["frames"], r["values"]) for r in runs.get((env, v), {}).values()])}
+              for env in envs}
+    how, normalised = normalise(runs, envs, metric)
+    overall = f"over {plural(len(envs), 'task')}"
+    aggregate_rows = across_task_lines(normalised, envs, variants, panels, overall)
+    ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
+    png = os.path.join(out, sweep, "report.png")
+    # Per task the raw scores; over the tasks the IQM of the normalised ones (report.md says how
+    # each task is).
+    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores "
+                                   f"normalised per task to 0-1 (report.md says how)",
+              ylabels={overall: "IQM of normalised score"},
+              estimates={**{e: "mean ± 95% CI over seeds" for e in envs},
+                         overall: "IQM, stratified-bootstrap 95% CI"})
+    per_task = plot.summary_table({e: panels[e] for e in envs}, metric)
+    norm_rows = ["| task | normalised score |", "|---|---|", *(f"| {e} | {how[e]} |" for e in envs)]
+    tables = "\n\n".join([per_task, "\n".join(aggregate_rows), "\n".join(norm_rows)])
+    note = (f"{len(finished)} of {len(specs)} jobs finished; only finished runs count. Per task: "
+            "mean ± 95% t-interval over seeds, raw scores. Over the tasks: IQM and mean of the "
+            "scores normalised per task (last table), with 95% stratified-bootstrap CIs over the "
+            f"seeds finished on every task (rliable, {BOOTSTRAP_REPS} resamples).")
+    with open(os.path.join(out, sweep, "report.md"), "w") as f:
+        f.write(f"# {sweep}\n\n{note}\n\n![curves](report.png)\n\n{tables}\n")
+    print(f"{tables}\n\n{note}\nwrote {png} and report.md")
+    return tables
+
+
+def finished_runs(finished: list[tuple[JobSpec, str]], metric: str | None) -> tuple[str, dict]:
+    """The metric (None: a success rate where every run has one, else the return) and the finished
+    runs' eval.csv curves, {(env, variant): {seed: plot.load_run()}}; a run that cannot be read is
+    skipped with one line."""
+    import plot
+    if metric is None:
         metric = "success" if all(has_column(run, "success") for _, run in finished) else "return"
     runs = {}
     for spec, run in finished:
@@ -989,26 +1054,25 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
             runs.setdefault((spec.env, spec.variant), {})[spec.seed] = plot.load_run(run, "eval", metric)
         except plot.PlotError as e:
             print(f"report: skipping {spec.name}: {e}")
-    envs = [e for e in dict.fromkeys(s.env for s in specs) if any(k[0] == e for k in runs)]
-    variants = list(dict.fromkeys(s.variant for s in specs))
-    if not envs:
-        return None
+    return metric, runs
 
-    panels = {}
-    for env in envs:
-        panels[env] = {}
-        for v in variants:
-            curves = [(r["frames"], r["values"]) for r in runs.get((env, v), {}).values()]
-            if curves:
-                panels[env][v] = (*plot.aggregate(curves), plot.coverage(curves), env)
 
-    # Normalised per task (every method's runs of the task together), then over the tasks.
+def normalise(runs: dict, envs: list[str], metric: str) -> tuple[dict, dict]:
+    """Per task, how its scores are normalised (every method's runs of the task together), and
+    {(env, variant): {seed: (frames, normalised scores)}}."""
     how, normalised = {}, {}
     for env in envs:
         members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env for seed, r in by_seed.items()]
         bounds, how[env] = normalisation(env, [r for _, _, r in members], metric)
         for (k, seed, r), (lo, hi) in zip(members, bounds):
             normalised.setdefault(k, {})[seed] = (r["frames"], (r["values"] - lo) / (hi - lo))
+    return how, normalised
+
+
+def across_task_lines(normalised: dict, envs: list[str], variants: list[str], panels: dict,
+                      overall: str) -> list[str]:
+    """The IQM over the tasks of every method with runs on all of them: its panel (`overall`, added
+    to `panels`) and its rows of the aggregate table (returned)."""
     scores, seeds_of = {}, {}
     for v in variants:
         seeds = sorted(set.intersection(*(set(normalised.get((e, v), {})) for e in envs)))
@@ -1024,35 +1088,18 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
         scores[v] = np.array([[normalised[(e, v)][s][1][np.isin(normalised[(e, v)][s][0], frames)]
                                for e in envs] for s in seeds])
         seeds_of[v] = (seeds, frames)
-    overall = f"over {plural(len(envs), 'task')}"
-    aggregate_rows = ["| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|"]
+    rows = ["| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|"]
     if scores:
         panels[overall] = {}
         for v, est in across_tasks(scores).items():
             seeds, frames = seeds_of[v]
             panels[overall][v] = (frames, est["iqm"], est["iqm_ci"], len(seeds), overall)
-            iqm, mean = (f"{est[k][-1]:.3f} [{est[k + '_ci'][0, -1]:.3f}, {est[k + '_ci'][1, -1]:.3f}]"
+            iqm, mean = (f"{est[k][-1]:.3f} [{est[k + '_ci'][0, -1]:.3f}, "
+                         f"{est[k + '_ci'][1, -1]:.3f}]"
                          for k in ("iqm", "mean"))
-            runs_of = f"{len(seeds)} seed{'s' * (len(seeds) > 1)} x {len(envs)} task{'s' * (len(envs) > 1)}"
-            aggregate_rows.append(f"| {v} | {runs_of} | {frames[-1]:.0f} | {iqm} | {mean} |")
-    ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
-    png = os.path.join(out, sweep, "report.png")
-    # Per task the raw scores; over the tasks the IQM of the normalised ones (report.md says how each task is).
-    plot.plot(panels, png, ylabel, f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised per "
-                                   f"task to 0-1 (report.md says how)", ylabels={overall: "IQM of normalised score"},
-              estimates={**{e: "mean ± 95% CI over seeds" for e in envs},
-                         overall: "IQM, stratified-bootstrap 95% CI"})
-    per_task = plot.summary_table({e: panels[e] for e in envs}, metric)
-    norm_rows = ["| task | normalised score |", "|---|---|", *(f"| {e} | {how[e]} |" for e in envs)]
-    tables = "\n\n".join([per_task, "\n".join(aggregate_rows), "\n".join(norm_rows)])
-    note = (f"{len(finished)} of {len(specs)} jobs finished; only finished runs count. Per task: mean ± 95% "
-            f"t-interval over seeds, raw scores. Over the tasks: IQM and mean of the scores normalised per task "
-            f"(last table), with 95% stratified-bootstrap CIs over the seeds finished on every task (rliable, "
-            f"{BOOTSTRAP_REPS} resamples).")
-    with open(os.path.join(out, sweep, "report.md"), "w") as f:
-        f.write(f"# {sweep}\n\n{note}\n\n![curves](report.png)\n\n{tables}\n")
-    print(f"{tables}\n\n{note}\nwrote {png} and report.md")
-    return tables
+            runs_of = f"{plural(len(seeds), 'seed')} x {plural(len(envs), 'task')}"
+            rows.append(f"| {v} | {runs_of} | {frames[-1]:.0f} | {iqm} | {mean} |")
+    return rows
 
 
 def has_column(run: str, name: str) -> bool:
@@ -1066,40 +1113,52 @@ def has_column(run: str, name: str) -> bool:
 # ================================================================================================
 # 8. CLI
 # ================================================================================================
-class OneLineParser(argparse.ArgumentParser):
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
+    """sweep.py's flags; a bad one is a cli.ConfigError (one line)."""
+    import cli  # stdlib only, as sear_config's imports: late
     grids = "; ".join(f"{name}: {g.doc}" for name, g in GRIDS.items())
-    p = OneLineParser(prog="sweep.py", allow_abbrev=False,  # no abbreviations: --seed is sear.py's
-                      description=__doc__.split("\nJob directory")[0],
-                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                      epilog="Unknown flags, and everything after --, go to sear.py.")
+    # no abbreviations: --seed is sear.py's
+    p = cli.OneLineParser(prog="sweep.py", allow_abbrev=False,
+                          description=__doc__.split("\nJob directory")[0],
+                          formatter_class=argparse.RawDescriptionHelpFormatter,
+                          epilog="Unknown flags, and everything after --, go to sear.py.")
     what = p.add_argument_group("what to run")
-    what.add_argument("--grid", help=f"a named grid of the paper: {grids}; transfer: not available yet")
+    what.add_argument("--grid", help=f"a named grid of the paper: {grids}; transfer: not available "
+                                     "yet")
     what.add_argument("--envs", nargs="+", help="tasks (with --grid: a subset of the grid's)")
-    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its variants); "
-                                                    "METHOD+drm runs METHOD with --drm (drq+drm is DrM)")
-    what.add_argument("--seeds", nargs="+", help="seeds: 1-5, 1,3,7 or 1-3 9 (default: the grid's, else 1)")
-    what.add_argument("--name", help="sweep folder under --out (default: the grid's name, else custom)")
-    what.add_argument("--out", help="folder of sweeps (default: sweeps; --status and --report inside a sweep's "
+    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its "
+                                                   "variants); "
+                                                    "METHOD+drm runs METHOD with --drm (drq+drm is "
+                                                    "DrM)")
+    what.add_argument("--seeds", nargs="+", help="seeds: 1-5, 1,3,7 or 1-3 9 (default: the grid's, "
+                                                 "else 1)")
+    what.add_argument("--name", help="sweep folder under --out (default: the grid's name, else "
+                                     "custom)")
+    what.add_argument("--out", help="folder of sweeps (default: sweeps; --status and --report "
+                                    "inside a sweep's "
                                    "folder: that folder)")
     do = p.add_argument_group("what to do (default: run what is not finished)")
-    do.add_argument("--status", action="store_true", help="print a table of the jobs' states and exit")
+    do.add_argument("--status", action="store_true", help="print a table of the jobs' states and "
+                                                          "exit")
     do.add_argument("--report", action="store_true", help="draw report.png / report.md and exit")
-    do.add_argument("--dry-run", action="store_true", help="print the jobs and their sear.py commands, run nothing")
+    do.add_argument("--dry-run", action="store_true", help="print the jobs and their sear.py "
+                                                           "commands, run nothing")
     eng = p.add_argument_group("engine (submitit: this machine, or a SLURM array)")
     eng.add_argument("--engine", choices=("local", "slurm"),
                      help="default: the one the sweep's folder records (sweep.json), else local")
     eng.add_argument("--jobs", type=int, help="local: jobs at a time (default: cores // --threads)")
-    eng.add_argument("--threads", type=int, default=1, help="torch threads per job (OMP_NUM_THREADS; default 1)")
-    eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, the authors')")
-    eng.add_argument("--gpus-per-job", type=int, help="default: 1 where the partition (sinfo) or this machine "
-                     "has GPUs, else 0; locally each job gets its own, round robin (CUDA_VISIBLE_DEVICES)")
-    eng.add_argument("--mem-gb", type=int, help="memory per job (default: a measured run's peak for the job's "
-                     "method, batch and replay, + 25%%); SLURM asks it, locally it bounds the jobs at a time")
+    eng.add_argument("--threads", type=int, default=1, help="torch threads per job "
+                                                            "(OMP_NUM_THREADS; default 1)")
+    eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, "
+                                                                  "the authors')")
+    eng.add_argument("--gpus-per-job", type=int, help="default: 1 where the partition (sinfo) or "
+                                                      "this machine "
+                     "has GPUs, else 0; locally each job gets its own, round robin "
+                     "(CUDA_VISIBLE_DEVICES)")
+    eng.add_argument("--mem-gb", type=int, help="memory per job (default: a measured run's peak "
+                                                "for the job's "
+                     "method, batch and replay, + 25%%); SLURM asks it, locally it bounds the jobs "
+                     "at a time")
     eng.add_argument("--partition", help="SLURM partition")
     eng.add_argument("--account", help="SLURM account")
     eng.add_argument("--slurm-array-parallelism", type=int, help="SLURM: array tasks at a time")
@@ -1140,34 +1199,40 @@ def spelled_out(flags: list[str]) -> list[str]:
 
 
 def listed(args, verb: str, sweep: str, entries: list[dict]) -> str:
-    return "; ".join(f"{show_command(args, verb, sweep, e['grid'], e['flags'])} ({plural(len(e['jobs']), 'job')})"
+    return "; ".join(f"{show_command(args, verb, sweep, e['grid'], e['flags'])} "
+                     f"({plural(len(e['jobs']), 'job')})"
                      for e in entries)
 
 
 def find_sweep(args, flags: list[str], verb: str) -> tuple[list[JobSpec], Grid | None]:
-    """--status / --report: the jobs of the sweep that --name / --grid names, from the folder's record
-    (sweep.json): its flags need not be given again. Where the folder holds several, the flags (none:
-    the one run without any) or --grid pick one. Flags that match none of its sweeps, several left, or no
-    sweep at all: SweepError naming the folder's sweeps and the command that shows each."""
+    """--status / --report: the jobs of the sweep that --name / --grid names, from the folder's
+    record (sweep.json): its flags need not be given again. Where the folder holds several, the
+    flags (none: the one run without any) or --grid pick one. Flags that match none of its sweeps,
+    several left, or no sweep at all: SweepError naming the folder's sweeps and the command that
+    shows each."""
     sweep = sweep_name(args)
     folder = os.path.join(args.out, sweep)
     entries = read_record(folder)
     if not entries:
         return unrecorded_sweep(args, flags, verb, sweep, folder)
     if args.grid and not any(e["grid"] == args.grid for e in entries):
-        raise SweepError(f"{folder} holds no sweep of grid {args.grid}; it holds: {listed(args, verb, sweep, entries)}")
+        raise SweepError(f"{folder} holds no sweep of grid {args.grid}; it holds: "
+                         f"{listed(args, verb, sweep, entries)}")
     chosen = [e for e in entries if e["grid"] == args.grid] if args.grid else entries
     same = [e for e in chosen if spelled_out(e["flags"]) == spelled_out(flags)]
-    if flags and not same and (args.grid or (args.envs and args.methods)):  # the same flags spelled otherwise
+    # the same flags spelled otherwise
+    if flags and not same and (args.grid or (args.envs and args.methods)):
         names = {s.name for s in plan(args, flags)[1]}
         same = [e for e in chosen if names & {j["name"] for j in e["jobs"]}]
     if flags and not same:
         raise SweepError(f"{folder} holds no sweep run with `-- {shlex.join(flags)}`; it holds: "
                          f"{listed(args, verb, sweep, chosen)}")
     if len(chosen) > 1 and len(same) != 1:
-        raise SweepError(f"{folder} holds {len(chosen)} sweeps, show one: {listed(args, verb, sweep, chosen)}")
+        raise SweepError(f"{folder} holds {len(chosen)} sweeps, show one: "
+                         f"{listed(args, verb, sweep, chosen)}")
     if len(chosen) > 1:
-        print(f"note: {folder} also holds: {listed(args, verb, sweep, [e for e in chosen if e is not same[0]])}")
+        print(f"note: {folder} also holds: "
+              f"{listed(args, verb, sweep, [e for e in chosen if e is not same[0]])}")
     entry = same[0] if same else chosen[0]
     return select(args, recorded_specs(entry), folder), GRIDS.get(entry["grid"])
 
@@ -1182,13 +1247,15 @@ def select(args, specs: list[JobSpec], folder: str) -> list[JobSpec]:
     if not picked:
         def have(values):
             return ", ".join(map(str, dict.fromkeys(values)))
-        raise SweepError(f"the sweep in {folder} has none of these jobs: it has envs {have(s.env for s in specs)}; "
-                         f"methods {have(s.variant for s in specs)}; seeds {have(s.seed for s in specs)}")
+        raise SweepError(f"the sweep in {folder} has none of these jobs: it has envs "
+                         f"{have(s.env for s in specs)}; methods {have(s.variant for s in specs)}; "
+                         f"seeds {have(s.seed for s in specs)}")
     return picked
 
 
 def unrecorded_sweep(args, flags: list[str], verb: str, sweep: str, folder: str):
-    """A folder without sweep.json: made before sweep.py recorded its sweeps, or never submitted to."""
+    """A folder without sweep.json: made before sweep.py recorded its sweeps, or never submitted
+    to."""
     held = folder_specs(folder)
     if not held:
         raise SweepError(f"no sweep in {folder}; {other_sweeps(args, verb)}")
@@ -1196,19 +1263,26 @@ def unrecorded_sweep(args, flags: list[str], verb: str, sweep: str, folder: str)
         return held, None
     _, specs, grid = plan(args, flags)
     if not {s.name for s in specs} & {s.name for s in held}:
-        raise SweepError(f"{folder} holds {len(held)} jobs, none of those these arguments name, and no {RECORD} "
-                         f"(the record of its flags, which older sweeps lack): give the sweep's own flags after --, "
-                         f"or show all of its jobs: {show_command(args, verb, sweep, None, [])}")
+        raise SweepError(f"{folder} holds {len(held)} jobs, none of those these arguments name, "
+                         f"and no {RECORD} (the record of its flags, which older sweeps lack): "
+                         "give the sweep's own flags after --, or show all of its jobs: "
+                         f"{show_command(args, verb, sweep, None, [])}")
     return specs, grid
 
 
 def main(argv: list[str] | None = None) -> int:
+    import cli
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, after = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
-    args, unknown = build_parser().parse_known_args(ours)
+    try:
+        args, unknown = build_parser().parse_known_args(ours)
+    except cli.ConfigError as e:
+        print(f"sweep.py: error: {e}", file=sys.stderr)
+        return 2
     args.flags, args.argv = unknown + after, argv
     try:
-        check_passthrough(args.flags)  # first: --stauts is a typo of --status, whatever else is on the line
+        # first: --stauts is a typo of --status, whatever else is on the line
+        check_passthrough(args.flags)
         if args.status or args.report:  # a sweep already submitted: its record knows the flags
             inside_sweep(args)
             args.sweep = sweep_name(args)
@@ -1229,7 +1303,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def inside_sweep(args) -> None:
-    """--status / --report in a sweep's folder (it holds sweep.json, or job folders): that folder, unless
+    """--status / --report in a sweep's folder (it holds sweep.json, or job folders): that folder,
+    unless
     --out or --name say which."""
     if args.out is None and args.name is None and (os.path.exists(RECORD) or folder_specs(".")):
         args.out, args.name = os.path.split(os.getcwd())
@@ -1237,11 +1312,70 @@ def inside_sweep(args) -> None:
 
 
 def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) -> int:
+    """The jobs neither done nor running elsewhere: run here (then the report) or submitted to
+    SLURM;
+    --dry-run prints them. 0 when every job run here finished, 1 if one failed."""
     sweep_dir = os.path.join(args.out, args.sweep)
     dirs = {spec: os.path.abspath(os.path.join(sweep_dir, spec.name)) for spec in specs}
     done = [s for s in specs if is_done(dirs[s])]
     busy = [s for s in specs if s not in done and alive(read_json(os.path.join(dirs[s], "lock"))) is not False]
     todo = [s for s in specs if s not in done and s not in busy]
+    gpus, mem_gb, parallel, where = resources(args, engine, why, todo)
+    shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
+            f"{len({s.seed for s in specs})} seeds"
+    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running "
+          f"elsewhere, {len(todo)} to run ({where})", flush=True)
+    if args.dry_run:
+        for s in todo:
+            print(f"{s.name}: sear.py {shlex.join(s.args)}")
+        return 0
+    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs, engine)
+    if held > 1:
+        print(f"note: {sweep_dir} now holds {held} sweeps (other grids or sear.py flags); --status "
+              f"and --report then need the sweep's flags after -- to pick one")
+    metric = grid.metric if grid else None
+    if not todo:
+        if engine == "local" and not busy:
+            report(args.out, args.sweep, specs, metric)
+        return 0
+    jobs = {spec: new_job(dirs[spec], spec, args.threads) for spec in todo}
+    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
+    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
+        import cloudpickle                # they need no `import sweep` from whatever their cwd is
+        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
+    if engine != "local":  # one SLURM array; this process only submits
+        return submit(executor, jobs, dirs, mem_gb, engine, sweep_dir)
+    driver = whoami()
+    for spec in todo:
+        mark_queued(dirs[spec], driver)
+    try:
+        results = run_local(executor, jobs, parallel, job_devices(gpus, local_gpus(), parallel))
+    except KeyboardInterrupt:
+        print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
+              "interrupted ones resume from their last snapshot)", file=sys.stderr)
+        return 130
+    return finished_here(args, specs, metric, results)
+
+
+def finished_here(args, specs: list[JobSpec], metric: str | None, results: dict) -> int:
+    """After the jobs run here: how many finished, and the report. 1 if one failed."""
+    failed = [s for s, r in results.items() if r.startswith(("failed", "interrupted"))]
+    print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
+          + (f"; {len(failed)} failed (see --status)" if failed else ""))
+    report(args.out, args.sweep, specs, metric)
+    return 1 if failed else 0
+
+
+def new_job(job_dir: str, spec: JobSpec, threads: int) -> SearJob:
+    """A job's folder with its job.json, and the job."""
+    os.makedirs(job_dir, exist_ok=True)
+    write_json(os.path.join(job_dir, "job.json"), dataclasses.asdict(spec))
+    return SearJob(job_dir, spec.args, spec.resume_args, threads, script=SEAR_PY)
+
+
+def resources(args, engine: str, why: str, todo: list[JobSpec]) -> tuple:
+    """(GPUs per job, memory per job in GB, jobs at a time here, where they run) of the jobs to run,
+    after the lines that say which engine and how much memory."""
     part = slurm_partition(args.partition) if engine == "slurm" else None
     check_cpus(args, part)
     gpus, gpu_note = job_gpus(args, engine, part)
@@ -1256,57 +1390,18 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) ->
             mem_line, parallel = mem_line + f", room for {fit} at a time", fit
     if mem_line:
         print(mem_line)
-    shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
-            f"{len({s.seed for s in specs})} seeds"
     where = f"{engine}, {parallel} at a time, {args.threads} thread(s) each" if engine == "local" else engine
-    where += f", {gpu_note}"
-    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running elsewhere, "
-          f"{len(todo)} to run ({where})", flush=True)
-    if args.dry_run:
-        for s in todo:
-            print(f"{s.name}: sear.py {shlex.join(s.args)}")
-        return 0
-    held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs, engine)
-    if held > 1:
-        print(f"note: {sweep_dir} now holds {held} sweeps (other grids or sear.py flags); --status and --report "
-              f"then need the sweep's flags after -- to pick one")
-    if not todo:
-        if engine == "local" and not busy:
-            report(args.out, args.sweep, specs, grid.metric if grid else None)
-        return 0
+    return gpus, mem_gb, parallel, f"{where}, {gpu_note}"
 
-    jobs, driver = {}, whoami()
-    for spec in todo:
-        d = dirs[spec]
-        os.makedirs(d, exist_ok=True)
-        write_json(os.path.join(d, "job.json"), dataclasses.asdict(spec))
-        jobs[spec] = SearJob(d, spec.args, spec.resume_args, args.threads, script=SEAR_PY)
-    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
-    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
-        import cloudpickle                # they need no `import sweep` from whatever their cwd is
-        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
 
-    if engine != "local":  # one SLURM array; this process only submits
-        submitted = submit_array(executor, [jobs[spec] for spec in todo], mem_gb)
-        for spec, job in zip(todo, submitted):
-            mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
-        print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with "
-              f"--status, draw the curves with --report; logs in {sweep_dir}/<job>/")
-        return 0
-
-    for spec in todo:
-        mark_queued(dirs[spec], driver)
-    try:
-        results = run_local(executor, jobs, parallel, job_devices(gpus, local_gpus(), parallel))
-    except KeyboardInterrupt:
-        print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
-              "interrupted ones resume from their last snapshot)", file=sys.stderr)
-        return 130
-    failed = [s for s, r in results.items() if r.startswith(("failed", "interrupted"))]
-    print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
-          + (f"; {len(failed)} failed (see --status)" if failed else ""))
-    report(args.out, args.sweep, specs, grid.metric if grid else None)
-    return 1 if failed else 0
+def submit(executor, jobs: dict, dirs: dict, mem_gb, engine: str, sweep_dir: str) -> int:
+    """The jobs as one SLURM array; each job folder records its array task."""
+    submitted = submit_array(executor, list(jobs.values()), mem_gb)
+    for spec, job in zip(jobs, submitted):
+        mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
+    print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them "
+          f"with --status, draw the curves with --report; logs in {sweep_dir}/<job>/")
+    return 0
 
 
 if __name__ == "__main__":

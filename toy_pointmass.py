@@ -17,7 +17,7 @@ Observations (the agent never sees p, g, o, rho)
     z_R ~ N(mu_R, sigma_R^2 I), mu_R = p                       (2 dims)
     z_E ~ N(mu_E, sigma_E^2 I), mu_E = (g, o, rho)             (5 dims)
     X   = Q z + eps, z = [z_R, z_E], Q in R^{obs_dim x 7}, eps ~ N(0, I)
-    X_R = Q2 z_R (the "mask": a projection of the agent part alone, no extra noise, as in the issue)
+    X_R = Q2 z_R (the "mask": a projection of the agent part alone, no extra noise, as the study sets it)
     z is resampled at *every* step; Q, Q2 are fixed per seed (entries N(0, 1)).
 
 Representations (fit per seed on random-action data)
@@ -519,19 +519,21 @@ def plot_sweep(cfg: Config, res, settings, path: Path):
     plt.close(fig)
 
 
-# ----------------------------------------------------------------------------------------------- CLI
+# ------------------------------------------------------------------------------------------- CLI
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one clear line, no usage dump
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def parse_args(argv=None) -> Config:
-    p = _Parser(prog="toy_pointmass.py", description="SEAR toy point-mass experiment (see module docstring).",
+    p = _Parser(prog="toy_pointmass.py",
+                description="SEAR toy point-mass experiment (see module docstring).",
                 formatter_class=argparse.ArgumentDefaultsHelpFormatter, allow_abbrev=False)
     defaults = Config()
     for f in dataclasses.fields(Config):
         flag = "--" + f.name.replace("_", "-")
-        kw = dict(dest=f.name, default=argparse.SUPPRESS, help=f"{f.metadata['help']} (default: {getattr(defaults, f.name)})")
+        kw = dict(dest=f.name, default=argparse.SUPPRESS,
+                  help=f"{f.metadata['help']} (default: {getattr(defaults, f.name)})")
         if f.type in (bool, "bool"):
             p.add_argument(flag, action=argparse.BooleanOptionalAction, **kw)
         else:

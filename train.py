@@ -62,12 +62,16 @@ class Episode(NamedTuple):
     task: str | None      # the task of a task set, else None
 
 
-def evaluate(agent: Agent, env, cfg: Config, step: int, on_step=None) -> list[Episode]:
+def evaluate(agent: Agent, env, cfg: Config, step: int, on_step=None, stop=None) -> list[Episode]:
     """Episodes with the mean action on the eval env, from the same reset seeds at every evaluation
     (so that evaluations compare); a task set runs each of its tasks (experiment.eval_tasks).
-    on_step(episode, t), if given, is called after every step (the progress line)."""
+    on_step(episode, t), if given, is called after every step (the progress line); stop(), if given,
+    before every episode: once it is true the evaluation ends there, with fewer episodes (a first
+    SIGTERM cuts an evaluation at an episode end)."""
     episodes = []
     for i, task in enumerate(experiment.eval_tasks(env, cfg)):
+        if stop is not None and stop():
+            break
         obs, info = env.reset(seed=experiment.episode_seed(cfg.seed + experiment.EVAL_SEED, i),
                               options=None if task is None else {"task": task})
         done, ret, success, t = False, 0.0, False, 0
@@ -99,10 +103,18 @@ def eval_due(frame: int, last_eval_frame: int, every: int) -> bool:
 
 
 def evaluate_and_log(agent: Agent, eval_env, cfg: Config, counters, rundir) -> None:
-    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the counter."""
-    env = rundir.start_eval(eval_env)  # the eval env, scored by the decoders, filmed with --save-video
-    rundir.log_eval(evaluate(agent, env, cfg, counters.step, on_step=rundir.show_eval))
-    counters.last_eval_frame = counters.step * cfg.action_repeat
+    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the
+    counter. While a first SIGTERM waits there is none, and one it cuts short at an episode end
+    leaves the counter: the run stops at its next safe point, and the resumed run evaluates
+    again."""
+    if rundir.stop_pending():
+        return
+    # the eval env, scored by the decoders, filmed with --save-video
+    env = rundir.start_eval(eval_env)
+    episodes = evaluate(agent, env, cfg, counters.step, on_step=rundir.show_eval,
+                        stop=rundir.stop_pending)
+    if rundir.end_eval(episodes):  # False: cut short
+        counters.last_eval_frame = counters.step * cfg.action_repeat
 
 
 def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
@@ -112,7 +124,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
     Ctrl-C, a SIGTERM or a storage error into one line."""
     with experiment.RunDir(cfg, run, snapshot) as rundir:
         device = cli.torch_setup(run)
-        train_env, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask)  # sets action_repeat 0
+        train_env, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask)
         action_dim = train_env.action_space.shape[0]
         source = experiment.init_source(cfg, run, action_dim) if run.init_from and not snapshot else None
         rundir.create()  # a new run's directory and config.json, now that every input is checked
@@ -128,26 +140,29 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
                       frame_stack=cfg.frame_stack, nstep=cfg.nstep, discount=cfg.discount)
         ring_bytes = cfg.replay_size * ReplayBuffer(1, **replay).bytes_per_transition
         buffer = ReplayBuffer(cfg.replay_size, **replay, device=experiment.replay_device(run, device, ring_bytes))
-        prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # None: sample here
+        prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # or None
         sampler = prefetcher or buffer
-        counters = rundir.start(agent, buffer, sample_rng)  # step, episode, last evaluation: fresh, or the snapshot's
-        snapshot_clock = time.monotonic()  # a snapshot every --snapshot-minutes, at the next episode end
+        counters = rundir.start(agent, buffer, sample_rng)  # fresh, or the snapshot's
+        snapshot_clock = time.monotonic()  # every --snapshot-minutes, at the next episode end
 
         frame = counters.step * cfg.action_repeat
         while frame < cfg.frames:  # drqv2's Until, in frames
-            if not counters.mid_episode:
-                rundir.safe_point()  # a first SIGTERM stops the run here, between episodes (with a snapshot)
+            if not counters.mid_episode:  # between episodes: a first SIGTERM stops here
+                rundir.safe_point()
+                if eval_due(frame, counters.last_eval_frame, cfg.eval_every):
+                    evaluate_and_log(agent, eval_env, cfg, counters, rundir)
+                    rundir.safe_point()  # after an evaluation a SIGTERM cut short: redone on resume
                 counters.mid_episode = True
                 obs, info = train_env.reset(seed=experiment.episode_seed(cfg.seed, counters.episode))
                 buffer.add_first(obs)
                 ep_return, ep_len, ep_success = 0.0, 0, False
-            if eval_due(frame, counters.last_eval_frame, cfg.eval_every):
+            elif eval_due(frame, counters.last_eval_frame, cfg.eval_every):  # inside an episode
                 evaluate_and_log(agent, eval_env, cfg, counters, rundir)
 
-            # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps agent steps
-            # (Agent.act), then the actor plus noise, not yet updated while the seed frames are collected.
+            # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps
+            # agent steps (Agent.act), then the actor plus noise, not updated in the seed frames.
             action = agent.act(obs["pixels"], obs["mask"], counters.step, eval_mode=False)
-            # Learning starts once the buffer holds the seed frames' worth of steps: after the random
+            # Learning starts once the buffer holds the seed frames' steps: after the random
             # phase of a new run, and again after a resume that could not bring its buffer back.
             if (frame >= cfg.seed_frames and counters.step % cfg.update_every == 0 and sampler.can_sample()
                     and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
@@ -162,7 +177,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
             ep_len += 1
             ep_success = ep_success or bool(info.get("success", False))
             if terminated or truncated:
-                rundir.log_episode(ep_return, ep_len, ep_success, info)  # train.csv and the progress line
+                rundir.log_episode(ep_return, ep_len, ep_success, info)  # train.csv, progress line
                 counters.episode, counters.mid_episode = counters.episode + 1, False
                 if frame < cfg.frames and time.monotonic() - snapshot_clock >= 60 * run.snapshot_minutes:
                     rundir.snapshot()  # between episodes: a resume continues exactly
@@ -170,8 +185,9 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
             else:
                 rundir.show_step(ep_len)
 
-        if counters.last_eval_frame != frame:  # the budget ends with an evaluation at its last frame
+        if counters.last_eval_frame != frame:  # the budget ends with an evaluation at its end
             evaluate_and_log(agent, eval_env, cfg, counters, rundir)
+            rundir.safe_point()  # cut short by a SIGTERM: the snapshot's resume evaluates again
         rundir.finish()  # the final snapshot
         for closing in (prefetcher, train_env, eval_env):
             if closing is not None:

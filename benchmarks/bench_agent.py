@@ -734,7 +734,7 @@ def compare_allocators(args):
     print(f"\n{load('(at the end)')}\n")
 
 
-def main():
+def build_parser():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--updates", type=int, default=3, help="timed updates per measurement")
@@ -780,7 +780,11 @@ def main():
     p.add_argument("--allocator", choices=["mallopt", "none"], default="mallopt",
                    help="mallopt: glibc's malloc as sear.py sets it (cli.configure_allocator); none: leave it")
     p.add_argument("--updates-only", action="store_true", help=argparse.SUPPRESS)
-    args = p.parse_args()
+    return p
+
+
+def main():
+    args = build_parser().parse_args()
     if args.allocator == "mallopt":
         cli.configure_allocator()
     torch.set_num_threads(args.threads or cli.default_threads())
@@ -798,7 +802,20 @@ def main():
         return compare_layouts(args)
     if args.compare_compile:
         return compile_comparison(args)
+    peaks = machine(args)
+    update_table(args, peaks)
+    if args.profile and torch.device(args.device).type == "cuda":
+        update_profile(args)
+    if args.breakdown:
+        op_breakdown(args, peaks)
+    if args.split_steps:
+        step_split(args)
+    if args.official:
+        official_comparison(args)
 
+
+def machine(args) -> dict:
+    """The machine's and the replay buffer's tables; returns the GEMM peak of each precision."""
     peaks = {p: gemm_gflops({"fp32": torch.float32, "bf16": torch.bfloat16}[p], args.device) for p in args.precisions}
     n = gemm_size(args.device)[0]
     on = (f"{torch.cuda.get_device_name(args.device)} (fp32 matmul TF32: {torch.backends.cuda.matmul.allow_tf32}, "
@@ -811,15 +828,7 @@ def main():
         b = sear.ReplayBuffer(1, (3, 84, 84), a, frame_stack=3, nstep=3, discount=0.99).bytes_per_transition
         print(f"| {a} | {b} | {b * 1e6 / 2**30:.1f} GiB |")
     print("\n(official drqv2 stores 63.5 KB per step)\n")
-    update_table(args, peaks)
-    if args.profile and torch.device(args.device).type == "cuda":
-        update_profile(args)
-    if args.breakdown:
-        op_breakdown(args, peaks)
-    if args.split_steps:
-        step_split(args)
-    if args.official:
-        official_comparison(args)
+    return peaks
 
 
 if __name__ == "__main__":

@@ -546,7 +546,7 @@ def print_power(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
+def build_parser():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="*", help="run directories, folders of runs, or globs")
     p.add_argument("--published", default=DRQV2_CURVES, metavar="PATH",
@@ -574,7 +574,11 @@ def main(argv=None) -> int:
                    help="print how often the rule says NO MATCH at these numbers of our seeds (default 3 8 16) "
                         "by collapse rate, and exit (no runs needed)")
     p.add_argument("--power-draws", type=int, default=4000, help="simulated draws per cell of --power")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     if args.power is not None:
         return print_power(args)
     task = plot.task_key(args.task)

@@ -1,4 +1,4 @@
-"""A researcher's first week (issue 21), at the command line: one owner per run directory, storage
+"""A researcher's first week, at the command line: one owner per run directory, storage
 errors in one line, SIGTERM, resume and mask-model inputs, --evaluate, misspelled flags and start-up
 warnings. Every test drives `python sear.py ...` (tiny budgets, CPU) and looks only at what a user
 sees: exit codes, stderr, the files of the run directory."""
@@ -187,6 +187,74 @@ def test_sigterm_stops_at_the_next_episode_end_with_a_snapshot_and_exit_143(tmp_
     assert snapshot_step(run_dir) == 40
 
 
+def test_sigterm_during_an_evaluation_stops_at_its_episode_end_and_the_resumed_run_evaluates_again(tmp_path):
+    """The frame-0 evaluation of 3 episodes of 40 steps: a SIGTERM in its first episode stops the run
+    when that episode ends (not after the evaluation and the training episode that follows), with a
+    snapshot of frame 0 and no eval.csv row; the resumed run evaluates at frame 0 again."""
+    p = Live(["--run-root", tmp_path / "runs", "--env", "walker-walk", *LONG_EPISODES, "--eval-episodes", "3"],
+             tmp_path)
+    try:
+        p.wait_for(r"\| eval 1/3 step 3 ")
+        p.p.send_signal(signal.SIGTERM)
+        code, out, err = p.finish()
+    finally:
+        p.kill()
+    run_dir = only_dir(tmp_path / "runs")
+    assert code == 143, err
+    assert "eval 2/3" not in out and "| ep 0 step" not in out, out[-3000:]
+    assert re.search(r"^evaluation at frame 0 stopped by SIGTERM after 1 of 3 episodes: no eval.csv row; a resume "
+                     r"evaluates again$", out, re.M), out[-3000:]
+    assert err.strip().splitlines()[-1] == (
+        f"sear.py: stopped by SIGTERM at frame 0 (between episodes; its evaluation stopped after 1 of 3 episodes, "
+        f"redone on resume): snapshot.pt holds this frame; continue with: python sear.py --resume {run_dir}")
+    assert snapshot_step(run_dir) == 0
+    assert not (run_dir / "eval.csv").exists() or rows(run_dir / "eval.csv") == []
+    import cli
+    if hasattr(cli.TermSignal(), "waits_for"):  # cli.TermSignal prints what the run says it waits for
+        line = next(line for line in err.splitlines() if line.startswith("sear.py: SIGTERM: "))
+        assert re.fullmatch(r"sear.py: SIGTERM: stopping at the end of this evaluation episode \(not timed yet: the "
+                            r"first of this process, at step \d+ after \d+s\), with a snapshot; the evaluation is "
+                            r"redone on resume; another SIGTERM stops at once", line), line
+
+    r = run(["--resume", run_dir, "--frames", "80"], tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "evaluating at frame 0 (3 episodes): the untrained policy, before any update" in r.stdout, r.stdout
+    assert [row["frame"] for row in rows(run_dir / "eval.csv")] == ["0", "80"]
+    assert not list(run_dir.glob("eval.after_snapshot_*.csv"))
+
+
+def test_the_sigterm_line_says_what_it_waits_for_and_how_long_at_most_as_measured():
+    """cli.TermSignal's line asks the run dir (cli.TERM.waits_for, set for the time of its block)."""
+    import types
+    import cli
+    import experiment
+    cfg = types.SimpleNamespace(frames=100_000, eval_every=10_000, discount=0.99, action_repeat=2)
+    run = types.SimpleNamespace(resume="", log_every=0)
+    with experiment.RunDir(cfg, run) as rundir:
+        assert cli.TERM.waits_for == rundir.waits_for and rundir.waits_for().startswith("the end of the start-up")
+    assert cli.TERM.waits_for is None
+
+    console = experiment.Console(cfg, run, None)
+    assert console.waits_for(0, False) == ("the next episode end (at most one episode, not timed yet in this "
+                                           "process), with a snapshot")
+    console.start_eval(0, 10, "the untrained policy")
+    assert re.fullmatch(r"the end of this evaluation episode \(not timed yet: the first of this process, at step 0 "
+                        r"after 0s\), with a snapshot; the evaluation is redone on resume", console.waits_for(0, False))
+    # A snapshot's longest episodes: 1000 frames in 250.2 s; an evaluation episode of 61.3 s.
+    console = experiment.Console(cfg, run, {"episode_frames": 1000, "episode_seconds": 250.2,
+                                            "eval_episode_seconds": 61.3})
+    assert console.waits_for(4000, True) == ("the next episode end (at most one episode: ~4m 11s, measured), with a "
+                                             "snapshot")
+    console.progress.saved["learning_fps"] = 2.0  # 1000 frames at 2 frames/s with updates
+    assert "(at most one episode: ~8m 20s, measured)" in console.waits_for(4000, True)
+    console.start_eval(10_000, 10, "")
+    assert console.waits_for(10_000, False) == ("the end of this evaluation episode (at most ~1m 02s, measured), with "
+                                                "a snapshot; the evaluation is redone on resume")
+    assert console.waits_for(10_100, True) == (
+        "the end of this evaluation episode (at most ~1m 02s, measured), then the end of the training episode "
+        "under way (at most one episode: ~8m 20s, measured), with a snapshot; the evaluation is redone on resume")
+
+
 def test_a_second_sigterm_stops_a_run_inside_one_long_native_call_within_seconds(tmp_path):
     """Python runs a signal handler between bytecodes only: a run inside one long torch call (here a
     deliberately long eigvals; --threads 64 on 2 cores sat in nn.init.orthogonal_) ignored both
@@ -274,8 +342,8 @@ def sear_command(*args):
 
 @pytest.mark.skipif(not user_namespace_available(), reason="needs unprivileged user namespaces (unshare -rm)")
 def test_a_full_disk_is_one_line_and_the_last_snapshot_stands(tmp_path):
-    """A 6 MB tmpfs: the snapshot at frame 16 (3.8 MB: Adam's moments exist from the start) fits, the
-    next cannot (its .tmp beside the last)."""
+    """A 6 MB tmpfs: the snapshot at frame 16 (3.7 MB: Adam's moments are made with the agent) fits,
+    the next cannot (its .tmp beside the last)."""
     disk, copy = tmp_path / "disk", tmp_path / "copy"
     disk.mkdir()
     r = in_user_namespace(
@@ -407,8 +475,10 @@ def test_a_mask_model_knows_its_robot_and_warns_on_another(tmp_path):
         r = run(["--run-root", tmp_path / "runs", "--env", "walker-walk", *TINY, "--frames", "16",
                  "--mask-source", f"learned:{path}"], tmp_path)
         assert r.returncode == 0, r.stderr[-3000:]
-        # (--force wrote it below the IoU floor: that warning is test_segment.py's subject)
-        warnings = [line for line in r.stderr.splitlines() if "warning" in line and "IoU floor" not in line]
+        # (--force wrote it below the IoU floor, and learned_mask_iou stays below it on walker: those
+        # warnings are test_segment.py's subject)
+        warnings = [line for line in r.stderr.splitlines() if "warning" in line and "IoU floor" not in line
+                    and "learned_mask_iou has stayed below" not in line]
         if warned:
             assert len(warnings) == 1 and "trained on cup-catch (robot: ball_in_cup)" in warnings[0] \
                 and "walker-walk's robot is walker" in warnings[0], r.stderr

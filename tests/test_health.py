@@ -1,4 +1,4 @@
-"""A first hour that tells the truth (issue 42): the progress line's ETA and the run's cost, the
+"""A first hour that tells the truth: the progress line's ETA and the run's cost, the
 health checks (a value that is not finite stops the run in one line; a collapsed actor or a
 diverging critic is warned of, once), the disk a run needs, and no run directory left without a
 snapshot. Unit tests of experiment.Progress / Health / FiniteActions, and `python sear.py ...` end

@@ -89,7 +89,7 @@ def test_folder_round_trip_and_train_cli(tmp_path, capsys):
 
 
 def test_train_refuses_a_model_below_the_iou_floor_unless_forced(tmp_path, capsys):
-    """The issue's case: a model that finds no robot (IoU ~0 after 1 step) is one line, exit 2, no file;
+    """The case that set the floor: a model that finds no robot (IoU ~0 after 1 step) is one line, exit 2, no file;
     --force writes it and the file records that it was forced below the floor."""
     images, masks = shapes(10)
     segment.write_folder(str(tmp_path / "labels"), images, masks)
@@ -272,7 +272,7 @@ def model_with(path, **meta):
     ({"iou": {"train": 0.2, "held-out": float("nan")}}, "mask model: held-out IoU not recorded")])
 def test_sear_prints_the_models_recorded_held_out_iou(tmp_path, capsys, meta, said):
     import experiment
-    cfg = sear.Config(env="walker-walk", mask_source=f"learned:{model_with(tmp_path / 'm.pt', **meta)}")
+    cfg = train.Config(env="walker-walk", mask_source=f"learned:{model_with(tmp_path / 'm.pt', **meta)}")
     assert experiment.load_mask_model(cfg) is not None
     out = capsys.readouterr()
     assert out.out.startswith(said) and out.out.count("\n") == 1 and out.err == "", out
@@ -281,7 +281,7 @@ def test_sear_prints_the_models_recorded_held_out_iou(tmp_path, capsys, meta, sa
 def test_sear_warns_on_a_model_forced_below_the_floor(tmp_path, capsys):
     import experiment
     path = model_with(tmp_path / "m.pt", iou={"train": 0.01, "held-out": 0.0}, iou_floor=0.5, forced_below_floor=True)
-    assert experiment.load_mask_model(sear.Config(env="walker-walk", mask_source=f"learned:{path}")) is not None
+    assert experiment.load_mask_model(train.Config(env="walker-walk", mask_source=f"learned:{path}")) is not None
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("sear.py: warning: --mask-source: the mask model was written "
                                                     "below the IoU floor 0.5 with segment.py train --force"), err
