@@ -341,7 +341,11 @@ def split_argv(argv: list[str]) -> tuple[list[int] | None, str | None, list[str]
 
 
 def wanted(argv) -> bool:
-    return split_argv(argv)[0] is not None
+    """Whether the command line asks for a group: --seeds, or --resume of a group's folder."""
+    try:
+        return split_argv(argv)[0] is not None
+    except cli.ConfigError:  # a bad --seeds: group.main says so in one line
+        return True
 
 
 def main(argv, Config, methods, parts) -> int:
@@ -375,8 +379,11 @@ def members_of(cfg, run, snapshot, seeds, group_dir) -> tuple[str, list[Member]]
         for k in seeds:
             path = os.path.join(group_dir, runs[str(k)])
             state = snapshot if k == seeds[0] else cli.load_snapshot(path)
-            member_cfg, _ = cli.split_config(state["config"], type(cfg))
-            members.append(Member(member_cfg, dataclasses.replace(run, resume=path), None, state))
+            if state["counters"]["step"] != snapshot["counters"]["step"]:
+                raise cli.ConfigError(f"--resume: the group's seeds stopped at different steps ({path}): resume "
+                                      f"each seed's run directory on its own")
+            # one configuration: the first seed's, checked and with what a resume may change, per seed
+            members.append(Member(dataclasses.replace(cfg, seed=k), dataclasses.replace(run, resume=path), None, state))
     for m in members:
         m.rundir = experiment.RunDir(m.cfg, m.run, m.snapshot)
     return group_dir, members
@@ -451,7 +458,7 @@ def stop_members(members, error, group_dir):
             lines.append(str(said))
     if isinstance(error, KeyboardInterrupt) and lines:
         cause, code = cli.stop_cause(error)
-        frames = sorted({m.rundir.snapshot_frame for m in members}, key=lambda f: -1 if f is None else f)
+        frames = sorted({m.rundir.files.snapshot_frame for m in members}, key=lambda f: -1 if f is None else f)
         stands = (f"every seed's snapshot holds frame {frames[0]}" if len(frames) == 1 and frames[0] is not None
                   else f"the seeds' last snapshots stand (frames {', '.join(map(str, frames))})")
         raise cli.Interrupted(f"{cause} at frame {members[0].rundir.frame}: {stands}; continue with: python sear.py "
@@ -517,6 +524,8 @@ def evaluate_group(members, pool, cfg, Episode, progress):
     tasks = experiment.eval_tasks(watches[0], members[0].cfg)
     episodes = [[] for _ in members]
     for e, task in enumerate(tasks):
+        if members[0].rundir.stop_pending():  # a first SIGTERM: the evaluation stops at an episode end
+            break
         obs = {}
         for i, (m, watch) in enumerate(zip(members, watches)):
             obs[i], _ = watch.reset(seed=experiment.episode_seed(m.cfg.seed + experiment.EVAL_SEED, e),
@@ -538,9 +547,11 @@ def evaluate_group(members, pool, cfg, Episode, progress):
         progress.say(f"eval {e + 1}/{len(tasks)} done")
     for m, mine in zip(members, episodes):
         with m.quiet():
-            m.rundir.log_eval(mine)
-        m.counters.last_eval_frame = m.counters.step * cfg.action_repeat
-    progress.evaluated(episodes)
+            done = m.rundir.end_eval(mine)  # False: a SIGTERM cut it short, redone on resume
+        if done:
+            m.counters.last_eval_frame = m.counters.step * cfg.action_repeat
+    if all(len(mine) == len(tasks) for mine in episodes):
+        progress.evaluated(episodes)
 
 
 class Progress:
