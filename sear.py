@@ -215,10 +215,10 @@ def random_shift(x: torch.Tensor, pad: int = 4, shift: torch.Tensor | None = Non
     return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)
 
 
-def shift_together(obs: torch.Tensor, mask: torch.Tensor):
-    """One random shift per sample, applied identically to the image stack and the mask stack."""
-    both = random_shift(torch.cat([obs, mask], dim=1))
-    return both[:, :obs.shape[1]], both[:, obs.shape[1]:]
+def shift_together(obs: torch.Tensor, *labels: torch.Tensor):
+    """One random shift per sample, applied identically to the image stack and each label stack (masks, EF's frame)."""
+    both = random_shift(torch.cat([obs, *labels], dim=1))
+    return both.split([obs.shape[1], *(x.shape[1] for x in labels)], dim=1)
 
 
 # ================================================================================================
@@ -249,11 +249,12 @@ def summed_bce(logits, target):
 class AuxLoss(nn.Module):
     """The seam. An auxiliary loss sees the latent of the augmented observation (which also feeds
     the critic) and the augmented image and mask (same shift); baselines that need more take it as
-    keywords (`encoder`, the un-augmented `obs`). It returns its weighted contribution to Eq. 6 and
+    keywords (`encoder`, the un-augmented `obs`, the `batch`). It returns its weighted contribution to Eq. 6 and
     its unweighted terms for the logs; its parameters join the encoder's and critic's optimiser (CURL
     steps its own, in after_update). METHODS builds it with build(cfg, encoder, critic)."""
     metric_names: tuple[str, ...] = ()
     decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
+    window = 0  # > 0: the replay's batches are Windows of this many steps after obs (foresight.py's EF)
 
     @classmethod
     def build(cls, cfg, encoder, critic):  # METHODS' constructor; SEAR's own takes plain arguments
@@ -268,6 +269,9 @@ class AuxLoss(nn.Module):
 
     def after_update(self, obs) -> dict:  # at the end of each update (CURL's own step): its terms for the logs
         return {}
+
+    def act(self, action, step):  # the action a training step takes instead (EF's babbling); no gradient
+        return action
 
 
 class SearAux(AuxLoss):
@@ -333,6 +337,10 @@ class Batch(NamedTuple):
     discount: np.ndarray | torch.Tensor   # (B, 1) gamma^m of the bootstrap, 0 after a termination
     next_obs: np.ndarray | torch.Tensor   # the observation m <= n steps later
     next_mask: np.ndarray | torch.Tensor
+
+
+Window = NamedTuple("Window", [*Batch.__annotations__.items(), ("actions_ahead", "torch.Tensor"),  # a Batch and
+                               ("frame_ahead", "torch.Tensor"), ("ahead", "torch.Tensor")])  # ReplayBuffer.windows
 
 
 def linear_std(cfg: Config, step):
@@ -480,6 +488,7 @@ class Agent:
             action = dist.sample(clip=None)
             if step < self.cfg.exploration_steps:
                 action.uniform_(-1.0, 1.0)
+            action = action if self.aux is None else self.aux.act(action, step)
         return action.squeeze(0).cpu().numpy().astype(np.float32)
 
     def next_value(self, next_latent, step):
@@ -500,13 +509,15 @@ class Agent:
         loss, metrics = critic_loss, {}
         if self.aux is not None:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
-                aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
+                aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs, batch=batch)
             loss = loss + aux_loss
         return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach()}
 
     def update_critic(self, batch: Batch, step):
         """One joint step on encoder, critic and decoders (Alg. 1)."""
-        obs_aug, mask_aug = shift_together(batch.obs, batch.mask)
+        ahead = [batch.frame_ahead] if isinstance(batch, Window) else []  # EF's frame ahead: its context's shift
+        obs_aug, mask_aug, *ahead = shift_together(batch.obs, batch.mask, *ahead)
+        batch = batch._replace(frame_ahead=ahead[0]) if ahead else batch
         latent = self.encode(obs_aug)
         loss, metrics = self.joint_loss(latent, obs_aug, mask_aug, batch, step)
         # materialize_grads: a parameter Eq. 6 does not reach (CURL's W, which CURL steps itself) gets a
@@ -529,14 +540,15 @@ class Agent:
     def update(self, batch: Batch, step: int) -> dict:
         """One update on a replay batch (arrays or tensors, on any device) at agent step `step`.
         Returns its metrics as 0-d tensors on the device: read them when a log line is written."""
-        batch = Batch._make(torch.as_tensor(x).to(self.device, non_blocking=True) for x in batch)
+        make = Window._make if isinstance(batch, Window) else Batch._make  # a Window: EF's (ReplayBuffer.windows)
+        batch = make(torch.as_tensor(x).to(self.device, non_blocking=True) for x in batch)
         return self.learn(batch, torch.full((), step, dtype=torch.float64, device=self.device))
 
     def learn(self, batch: Batch, step: torch.Tensor) -> dict:
         """The update itself, tensors in and out (the part --compile takes whole): the critic's and the
         auxiliary loss's joint step, the actor's step, the target critic's Polyak averaging, and a
         method's own step (CURL's). `step`: the agent step as a float64 0-d tensor."""
-        batch = Batch._make(x.float() for x in batch)
+        batch = type(batch)._make(x.float() for x in batch)
         batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
                                next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
         latent, metrics = self.update_critic(batch, step)
@@ -589,10 +601,12 @@ class ReplayBuffer:
     returns summed there, on the device. A time-limit end (truncation) bootstraps; a termination does not.
     Draws follow DrQ-v2's loader (replay_buffer.py _sample): an episode uniformly among the finished
     ones still whole in the ring, then a start whose whole n-step window lies in it; the episode index
-    and the draws stay on the host (numpy), so the only host->device copy of a batch is its start times."""
+    and the draws stay on the host (numpy), so the only host->device copy of a batch is its start times.
+    With window=L (AuxLoss.window) a batch is a Window: the same draws, and after them one horizon per batch."""
 
-    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu"):
+    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu", window=0):
         self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
+        self.window = window  # AuxLoss.window: > 0 samples Windows
         self.frame_shape, self.device = tuple(frame_shape), torch.device(device)  # (3, H, W)
         h, w = frame_shape[1:]
         self.mask_bytes = (h * w + 7) // 8
@@ -666,11 +680,15 @@ class ReplayBuffer:
     def can_sample(self, margin=0):
         return len(self.drawable(max(0, self.t - self.capacity + margin))) > 0
 
-    def sample(self, batch_size, rng: np.random.Generator, margin=0) -> Batch | None:
+    def sample(self, batch_size, rng: np.random.Generator, margin=0) -> Batch | Window | None:
         """A batch of transitions drawn with `rng`, or None while no episode can be drawn. margin: the
         oldest slots kept out of the draws (a sampler thread reads while the loop overwrites them)."""
         lo = max(0, self.t - self.capacity + margin)
-        return self.transitions(self.draw_starts(batch_size, rng, lo)) if len(self.drawable(lo)) else None
+        times = self.draw_starts(batch_size, rng, lo) if len(self.drawable(lo)) else None
+        if times is None or not self.window:
+            return None if times is None else self.transitions(times)
+        ahead = int(rng.integers(1, self.window + 1))  # EF's horizon, one per batch, in agent steps
+        return Window(*self.transitions(times), *self.windows(times, self.window, ahead))
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
         """n start times: an episode uniformly among those drawable from lo, then a start from which
@@ -690,6 +708,15 @@ class ReplayBuffer:
         pixels = self.frames[idx].view(b, -1, h, w)
         bits = (self.masks[idx].unsqueeze(-1) >> self.bits) & 1  # (B, stack, mask bytes, 8)
         return pixels, bits.view(b, self.stack, -1)[..., :h * w].view(b, self.stack, h, w)
+
+    def windows(self, times, length, ahead):
+        """The actions of the `length` steps after each of `times` (B, length, A), the frame `ahead` steps after it
+        (B, 3, H, W) and ahead (B, 1); never across an episode start (past an episode's end: its last step)."""
+        times = torch.as_tensor(np.asarray(times, dtype=np.int64)).to(self.device, non_blocking=True)[:, None]
+        idx = times + torch.arange(1, length + 1, device=self.device)
+        left = (self.first[idx % self.capacity].cumsum(1) == 0).sum(1, keepdim=True)  # steps before a next start
+        idx, ahead = torch.minimum(idx, times + left) % self.capacity, left.clamp(max=ahead)
+        return self.actions[idx], self.frames[idx.gather(1, (ahead - 1).clamp(min=0))[:, 0]], ahead
 
     def transitions(self, times) -> Batch:
         """The n-step transitions starting at `times`, each inside one episode (as drawn): R = sum_k
