@@ -46,6 +46,8 @@ def refusal(cfg, run) -> str | None:
     if cfg.drm:
         return "--seeds does not take --drm: DrM re-initialises networks in place, seed by seed"
     aux = sear.METHODS[cfg.method].aux
+    if aux is not None and aux.replay is not sear.AuxLoss.replay:
+        return f"--seeds does not take --method {cfg.method} yet: its replay is its own"
     if aux is not None and aux.after_update is not sear.AuxLoss.after_update:
         return f"--seeds does not take --method {cfg.method}: its own optimiser step runs outside the batched update"
     if run.compile:

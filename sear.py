@@ -4,12 +4,11 @@ DrQ-v2 (DDPG from pixels: random-shift augmentation, n-step returns, clipped dou
 decaying exploration noise) whose image encoder is also trained by two decoders on a latent split in
 two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
 the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
-c2 = 0.0025). Other representation losses plug into the same seam (`AuxLoss`, one row of `METHODS`):
-baselines.py adds the paper's baselines, drm.py adds DrM (`DrMAgent`).
-
-In reading order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
-6. Replay buffer. It needs torch, numpy and the standard library only; the training loop, the envs and
-the command line stand on it in train.py: `python sear.py --env walker-walk-distracting` runs train.py.
+c2 = 0.0025). Other representation losses plug into the same seam (`AuxLoss`, a row of `METHODS`):
+baselines.py adds the paper's baselines, foresight.py Ego-Foresight, drm.py DrM (`DrMAgent`). In reading
+order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent, 6. Replay buffer.
+It needs torch, numpy and the standard library only; the loop, the envs and the command line stand on it
+in train.py: `python sear.py --env walker-walk-distracting` runs train.py.
 """
 from __future__ import annotations
 
@@ -214,10 +213,10 @@ def random_shift(x: torch.Tensor, pad: int = 4, shift: torch.Tensor | None = Non
     return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)
 
 
-def shift_together(obs: torch.Tensor, mask: torch.Tensor):
-    """One random shift per sample, applied identically to the image stack and the mask stack."""
-    both = random_shift(torch.cat([obs, mask], dim=1))
-    return both[:, :obs.shape[1]], both[:, obs.shape[1]:]
+def shift_together(obs: torch.Tensor, *labels: torch.Tensor):
+    """One random shift per sample, applied identically to the image stack and each label stack (masks, EF's frame)."""
+    both = random_shift(torch.cat([obs, *labels], dim=1) if labels else obs)
+    return both.split([obs.shape[1], *(x.shape[1] for x in labels)], dim=1)
 
 
 # ================================================================================================
@@ -233,9 +232,8 @@ def summed_mse(pred, target, weight=None):
 
 
 def reconstruction_loss(pred, obs, weight=None):
-    """Eq. 5 on the [-0.5, 0.5]-normalised image. The prediction is clamped to that range first, as
-    in the authors' code (sear/agents/sear.py and drqv2AE.py): no gradient pushes a pixel that is
-    already past black or white any further."""
+    """Eq. 5 on the [-0.5, 0.5]-normalised image, the prediction clamped to that range first (the authors'
+    sear/agents/sear.py, drqv2AE.py): no gradient pushes a pixel already past black or white further."""
     return summed_mse(pred.float().clamp(-0.5, 0.5), normalise(obs), weight)
 
 
@@ -247,8 +245,8 @@ def summed_bce(logits, target):
 
 class AuxLoss(nn.Module):
     """The seam: sees the latent of the augmented observation (which the critic reads too) and the
-    augmented image and mask (same shift; more by keyword: `encoder`, the un-augmented `obs`); returns its
-    weighted term of Eq. 6 and its unweighted terms for the logs. Its parameters join the encoder's and
+    augmented image and mask (same shift; by keyword: `encoder`, the un-augmented `obs`, the `batch`); returns
+    its weighted term of Eq. 6 and its unweighted terms for the logs. Its parameters join the encoder's and
     critic's optimiser (CURL steps its own, in after_update). METHODS builds it: build(cfg, encoder, critic)."""
     metric_names: tuple[str, ...] = ()
     decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
@@ -260,12 +258,17 @@ class AuxLoss(nn.Module):
     def forward(self, latent, obs_aug, mask_aug, **extra):
         return latent.new_zeros(()), {}  # nothing in Eq. 6 (CURL: its own step, after_update)
 
-    def decode(self, latent) -> dict:
-        """What the decoders make of a latent, for the evaluation's metrics and videos."""
+    def decode(self, latent) -> dict:  # what the decoders make of a latent: the evaluation's metrics and videos
         return {}
 
     def after_update(self, obs) -> dict:  # at the end of each update (CURL's own step): its terms for the logs
         return {}
+
+    def act(self, action, step):  # the action a training step takes instead (EF's babbling)
+        return action
+
+    def replay(self, *args, **kwargs):  # the replay the method samples (EF's: windows)
+        return ReplayBuffer(*args, **kwargs)
 
 
 class SearAux(AuxLoss):
@@ -331,18 +334,16 @@ class Batch(NamedTuple):
 
 
 def linear_std(cfg: Config, step):
-    """DrQ-v2's `linear(std_start, std_end, std_steps)`, evaluated at the global AGENT step (not the
-    frame): at action repeat 2 the std reaches std_end after 500k steps = 1M frames. `step`: an int, or
-    the update's float64 step tensor (the std is then computed on the device, as a Python float would be)."""
+    """DrQ-v2's `linear(std_start, std_end, std_steps)` at the AGENT step (an int, or the update's float64
+    tensor: on the device, as a float would be): at action repeat 2, std_end after 500k steps = 1M frames."""
     mix = step / cfg.std_steps
     mix = mix.clamp(0.0, 1.0) if torch.is_tensor(mix) else min(max(mix, 0.0), 1.0)
     return (1.0 - mix) * cfg.std_start + mix * cfg.std_end
 
 
 def actor_metrics(actor_loss, mu) -> dict:
-    """The failure of short DDPG runs, made visible: actor_saturated is the share of mean-action
-    entries where float32's tanh is exactly +-1 (1 - tanh^2 = 0: no gradient brings them back),
-    action_spread the std of the mean action over the batch (0: the same action in every state)."""
+    """Short DDPG runs' failure, made visible: actor_saturated, the share of mean actions at exactly +-1 in
+    float32 (no gradient brings them back); action_spread, their std over the batch (0: one action always)."""
     return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).mean(dtype=torch.float32),
             "action_spread": mu.std(0, correction=0).mean()}
 
@@ -361,8 +362,7 @@ class Adam(torch.optim.Adam):
     def params(self):
         return [p for group in self.param_groups for p in group["params"]]
 
-    def reset(self, params=None):
-        """Fresh moments and counts (all parameters, or `params`: DrM's perturbation forgets some)."""
+    def reset(self, params=None):  # fresh moments and counts (of `params`: DrM's perturbation forgets some)
         for p in self.params if params is None else params:
             self.state[p] = {"step": torch.zeros((), dtype=torch.float64, device=p.device),
                              "exp_avg": torch.zeros_like(p), "exp_avg_sq": torch.zeros_like(p)}
@@ -401,9 +401,8 @@ class Adam(torch.optim.Adam):
 
 
 class Agent:
-    """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). What a variant of
-    the algorithm changes, it changes by overriding one of: `std` (the exploration std), `next_value`
-    (the critic's bootstrap value), `joint_loss` (Eq. 6) or `update`; drm.DrMAgent is one."""
+    """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). A variant overrides
+    `std` (exploration), `next_value` (the bootstrap), `joint_loss` (Eq. 6) or `update`: drm.DrMAgent."""
 
     def __init__(self, cfg: Config, action_dim: int, device: torch.device):
         self.cfg, self.device = cfg, device
@@ -435,8 +434,7 @@ class Agent:
     def std(self, step):  # the exploration std at this agent step: DrQ-v2's linear schedule
         return linear_std(self.cfg, step)
 
-    def conv_precision(self):
-        """bf16 autocast for the convolutional networks under --precision bf16; a no-op for fp32."""
+    def conv_precision(self):  # bf16 autocast for the convolutional networks under --precision bf16
         return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cfg.precision == "bf16")
 
     def encode(self, obs):
@@ -466,6 +464,7 @@ class Agent:
             action = dist.sample(clip=None)
             if step < self.cfg.exploration_steps:
                 action.uniform_(-1.0, 1.0)
+            action = action if self.aux is None else self.aux.act(action, step)
         return action.squeeze(0).cpu().numpy().astype(np.float32)
 
     def next_value(self, next_latent, std):
@@ -475,9 +474,8 @@ class Agent:
         return torch.min(*self.critic_target(next_latent, next_action))
 
     def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step):
-        """Eq. 6: the critic's TD loss plus the auxiliary loss (c1 * recon + c2 * mask for SEAR) on
-        `latent`, the encoding of the augmented observation obs_aug (mask_aug: its masks, same shift).
-        Returns the loss and the terms for the logs, the update's exploration std (expl_std) among them."""
+        """Eq. 6, the critic's TD loss plus the auxiliary loss (SEAR: c1 recon + c2 mask), on `latent`, the
+        encoding of obs_aug (mask_aug: its masks, same shift); the loss, and the logs' terms with expl_std."""
         std = self.std(step)
         with torch.no_grad():
             next_latent = self.encode(random_shift(batch.next_obs))
@@ -487,14 +485,17 @@ class Agent:
         loss, metrics = critic_loss, {}
         if self.aux is not None:
             with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
-                aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs)
+                aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs,
+                                             batch=batch)
             loss = loss + aux_loss
         return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach(), "expl_std": std}
 
     def critic_objective(self, batch: Batch, step):
         """Eq. 6 on a batch: the loss, its terms for the logs, the latent of the augmented observation."""
-        # one shift per sample: the same draws with or without the masks
-        obs_aug, mask_aug = (random_shift(batch.obs), None) if batch.mask is None else shift_together(batch.obs, batch.mask)
+        labels = [x for x in (batch.mask, getattr(batch, "frame_ahead", None)) if x is not None]
+        obs_aug, *labels = shift_together(batch.obs, *labels)  # one shift per sample: the same draws with or without
+        mask_aug = labels.pop(0) if batch.mask is not None else None
+        batch = batch._replace(frame_ahead=labels[0]) if labels else batch  # EF's frame ahead, shifted as its context
         latent = self.encode(obs_aug)
         return (*self.joint_loss(latent, obs_aug, mask_aug, batch, step), latent)
 
@@ -521,7 +522,8 @@ class Agent:
     def update(self, batch: Batch, step: int) -> dict:
         """One update on a replay batch (arrays or tensors, on any device) at agent step `step`.
         Returns its metrics as 0-d tensors on the device: read them when a log line is written."""
-        batch = Batch._make(torch.as_tensor(x, device=self.device) for x in batch)  # a ring's: there already
+        make = type(batch)._make if hasattr(batch, "_make") else Batch._make  # a Batch, or a method's (EF's Window)
+        batch = make(torch.as_tensor(x, device=self.device) for x in batch)  # a ring's: there already
         if not self.method.uses_mask:  # neither shifted nor read
             batch = batch._replace(mask=None, next_mask=None)
         return self.learn(batch, torch.full((), step, dtype=torch.float64, device=self.device))
@@ -529,7 +531,7 @@ class Agent:
     def learn(self, batch: Batch, step: torch.Tensor) -> dict:
         """The update, tensors in and out (what --compile takes whole): the joint step of Eq. 6, the actor's,
         Polyak averaging, a method's own step (CURL's). `step`: the agent step, a float64 0-d tensor."""
-        batch = Batch._make(None if x is None else x.float() for x in batch)
+        batch = type(batch)._make(None if x is None else x.float() for x in batch)
         batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
                                next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
         latent, metrics = self.update_critic(batch, step)
@@ -542,9 +544,8 @@ class Agent:
         return metrics
 
     def compile(self):
-        """--compile: learn() as one torch.compile graph (a break is an error, on the CPU too), replayed as
-        a CUDA graph on CUDA. Eager stays the reference: on the CPU the compiled update draws eager's
-        random numbers (inductor's fallback_random) and equals it to rounding."""
+        """--compile: learn() as one torch.compile graph (a break is an error, on the CPU too), a CUDA graph on
+        CUDA. Eager stays the reference: on the CPU it draws eager's numbers (fallback_random), equal to rounding."""
         import torch._dynamo
         import torch._inductor.config
         torch._dynamo.config.trace_autograd_ops = True  # torch.autograd.grad inside the graph
@@ -553,7 +554,8 @@ class Agent:
         for t in [t for opt in held if isinstance(opt, Adam) for state in opt.state.values() for t in state.values()] \
                 + [t for t in held if torch.is_tensor(t)]:
             torch._dynamo.mark_static_address(t)  # updated in place by the graph: its address must not move
-        graph = torch.compile(self.learn, fullgraph=True, mode="reduce-overhead" if self.device.type == "cuda" else None)
+        cuda_graph = "reduce-overhead" if self.device.type == "cuda" else None
+        graph = torch.compile(self.learn, fullgraph=True, mode=cuda_graph)
         # A CUDA graph's outputs are overwritten by its next replay; the metrics wait for a log line.
         self.learn = lambda batch, step: {k: v.clone() for k, v in graph(batch, step).items()}
 
@@ -628,15 +630,13 @@ class ReplayBuffer:
         self._write(obs, action, reward, terminated, False)
 
     def load_arrays(self, arrays) -> None:
-        """A saved ring back (a wrapped one in the same slots), and the episode index rebuilt from the
-        `first` flags."""
+        """A saved ring back (a wrapped one in the same slots), the episode index rebuilt from its `first` flags."""
         n = len(arrays["rewards"])
         for a in self.ARRAYS:
             getattr(self, a)[:n] = torch.from_numpy(np.asarray(arrays[a]))
         self.t = int(arrays["t"])
         lo = max(0, self.t - self.capacity)
-        first = self.first[:n].cpu().numpy()
-        firsts = lo + np.flatnonzero(first[np.arange(lo, self.t) % self.capacity])
+        firsts = lo + np.flatnonzero(self.first[:n].cpu().numpy()[np.arange(lo, self.t) % self.capacity])
         steps = np.diff(firsts) - 1
         self.episodes = np.stack([firsts[:-1], steps], axis=1)[steps >= self.nstep]
         self.running = firsts[-1] if len(firsts) else -1
@@ -653,7 +653,10 @@ class ReplayBuffer:
         """A batch of transitions drawn with `rng`, or None while no episode can be drawn. margin: the
         oldest slots kept out of the draws (a sampler thread reads while the loop overwrites them)."""
         lo = max(0, self.t - self.capacity + margin)
-        return self.transitions(self.draw_starts(batch_size, rng, lo)) if len(self.drawable(lo)) else None
+        return self.batch(self.draw_starts(batch_size, rng, lo), rng) if len(self.drawable(lo)) else None
+
+    def batch(self, times, rng: np.random.Generator):  # a batch of these starts (EF's adds windows)
+        return self.transitions(times)
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
         """n start times: an episode uniformly among those drawable from lo, then a start from which
@@ -675,9 +678,8 @@ class ReplayBuffer:
         return pixels, bits.view(b, self.stack, -1)[..., :h * w].view(b, self.stack, h, w)
 
     def transitions(self, times) -> Batch:
-        """The n-step transitions starting at `times`, each inside one episode (as drawn): R = sum_k
-        gamma^(k-1) r_(t+k), and the bootstrap discount gamma^n, zero if the episode terminated at t+n;
-        float32 arithmetic in numpy's order."""
+        """The n-step transitions from `times` (each inside one episode): R = sum_k gamma^(k-1) r_(t+k) and the
+        bootstrap discount gamma^n, 0 if the episode terminated at t+n (float32, in numpy's order)."""
         times = torch.as_tensor(np.asarray(times, dtype=np.int64)).to(self.device, non_blocking=True)
         ret, gamma_n = torch.zeros(len(times), device=self.device), np.float32(1.0)
         for k in range(1, self.nstep + 1):

@@ -161,8 +161,13 @@ GRIDS = {
                              "walker-walk, cup-catch"),
     "dear-kitchen": Grid(
         envs=("kitchen-kettle", "kitchen-light", "kitchen-slider"), variants=DEAR, flags=PAPER_FRAMES,
-        metric="success", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Franka Kitchen kettle, "
-                              "light, slider"),
+        metric="success", doc="DEAR (both signs) beside SEAR and DrQ-v2 on Franka Kitchen kettle, light, slider"),
+    # What do the masks buy? SEAR learns the robot from simulator masks, Ego-Foresight (foresight.py) from its own
+    # motion, DrQ-v2 not at all; EF at its release's latent (hs_dim 2048). One metric for both suites: return.
+    "masks": Grid(
+        envs=("walker-walk-distracting", "metaworld-door-open"), flags=PAPER_FRAMES, metric="return",
+        variants=(Variant("sear", "sear"), Variant("ef", "ef", ("--latent-dim", "2048")), Variant("drq", "drq")),
+        doc="SEAR (masks) beside Ego-Foresight (no masks) and DrQ-v2 on walker-walk-distracting, metaworld-door-open"),
 }
 # Named so that asking for them gives a clear answer instead of "unknown grid".
 NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) "

@@ -24,15 +24,16 @@ import baselines
 import cli
 import drm
 import experiment
+import foresight
 import group
 import sear
 from sear import Agent, ReplayBuffer, arg
 
-METHODS = sear.METHODS  # SEAR's and DrQ-v2's rows, and (imported above) the baselines'
+METHODS = sear.METHODS  # SEAR's and DrQ-v2's rows, and (imported above) the baselines' and EF's
 
 
 @dataclass
-class Config(sear.Config, baselines.BaselineConfig, drm.DrMConfig, experiment.EnvConfig):
+class Config(sear.Config, baselines.BaselineConfig, foresight.ForesightConfig, drm.DrMConfig, experiment.EnvConfig):
     """The experiment: the task, its budget and its evaluation, on top of the algorithm's hyper-parameters
     (sear.Config), the baselines' and DrM's settings and the envs' (masks, distractors, rendering). One
     --flag each (the doc is its help). How a process runs it (device, files, snapshots) is cli.RunConfig."""
@@ -139,7 +140,8 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
         replay = dict(frame_shape=(3, *train_env.observation_space["pixels"].shape[1:]), action_dim=action_dim,
                       frame_stack=cfg.frame_stack, nstep=cfg.nstep, discount=cfg.discount)
         ring_bytes = cfg.replay_size * ReplayBuffer(1, **replay).bytes_per_transition
-        buffer = ReplayBuffer(cfg.replay_size, **replay, device=experiment.replay_device(run, device, ring_bytes))
+        buffer = (agent.aux.replay if agent.aux is not None else ReplayBuffer)(  # a method's own (EF's windows)
+            cfg.replay_size, **replay, device=experiment.replay_device(run, device, ring_bytes))
         prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # or None
         sampler = prefetcher or buffer
         counters = rundir.start(agent, buffer, sample_rng)  # fresh, or the snapshot's
