@@ -412,12 +412,14 @@ def train_group(cfg, run, snapshot, seeds, group_dir, parts) -> str:
               f"{group_dir}; envs in {pool.kind}; device {device}", flush=True)
         env = pool.envs[0]["train"]
         action_dim, frame_shape = env.action_space.shape[0], (3, *env.observation_space["pixels"].shape[1:])
+        ring = (frame_shape, action_dim, cfg.frame_stack, cfg.nstep, cfg.discount)
+        ring_bytes = len(members) * cfg.replay_size * sear.ReplayBuffer(1, *ring).bytes_per_transition
+        where = experiment.replay_device(run, device, ring_bytes)  # every seed's ring on the GPU, or all on the host
         for m in members:
             torch.manual_seed(m.cfg.seed)  # each seed's networks, as its single run draws them
             m.rng = np.random.default_rng(m.cfg.seed)
             m.agent = parts.make_agent(m.cfg, action_dim, device)
-            m.buffer = sear.ReplayBuffer(m.cfg.replay_size, frame_shape, action_dim, m.cfg.frame_stack, m.cfg.nstep,
-                                         m.cfg.discount, device=device)
+            m.buffer = sear.ReplayBuffer(m.cfg.replay_size, *ring, device=where)
             with m.quiet():
                 m.counters = m.rundir.start(m.agent, m.buffer, m.rng)
         if snapshot is not None:  # the group's torch stream continues where it stood

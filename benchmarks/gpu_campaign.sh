@@ -9,8 +9,15 @@
 # or ran different settings.
 #
 #   benchmarks/gpu_campaign.sh [--first-seed K] [--seeds N] [--frames F] [--budget-minutes M] [--parallel P]
-#                              [--sear] [--out DIR] [--copy-to DIR] [--render-quality paper|fast] [--eval-every FRAMES]
+#                              [--sear] [--processes] [--out DIR] [--copy-to DIR] [--render-quality paper|fast]
+#                              [--eval-every FRAMES]
+#   benchmarks/gpu_campaign.sh --seeds 16   the campaign in one command: all 16 seeds in one sear.py --seeds group
 #   benchmarks/gpu_campaign.sh --quick     2 seeds of tiny networks for 200 frames on the CPU (CI, so it cannot rot)
+#
+# Two or more seeds run as ONE group (sear.py --seeds K-L, group.py: their networks updated as one batched
+# update, their envs in worker processes), with the reference arithmetic (TF32 off, sear.py's default) and a
+# replay ring of the frames' steps (it never wraps, as DrQ-v2's 1M one does not in 40k frames: the same
+# draws); --processes runs one sear.py per seed instead, P at a time (how parts 1 and later ran).
 #
 # Defaults: seeds 1-4, 40000 frames, 4 at a time, 9 minutes. Sizing (measured on the lent H200 machine: 16
 # cores, EGL drawing on the GPU; docs/published-curve.md#the-gpu-campaign): four DrQ runs at once make ~100-108
@@ -36,10 +43,12 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 die() { echo "gpu_campaign.sh: error: $*" >&2; exit 2; }
 same=() quick=0 first=1 seeds="" frames="" budget="" parallel=4 sear=0 out="" copy_to="" quality="" eval_every=""
+processes=0
 while [ $# -gt 0 ]; do
   case $1 in
     --quick) quick=1 same+=("$1") ;;
     --sear) sear=1 same+=("$1") ;;
+    --processes) processes=1 same+=("$1") ;;
     --first-seed|--seeds|--frames|--budget-minutes|--parallel|--out|--copy-to|--render-quality|--eval-every)
       [ $# -ge 2 ] || die "$1 needs a value"
       case $1 in
@@ -50,7 +59,7 @@ while [ $# -gt 0 ]; do
       case $1 in --first-seed|--out|--copy-to) ;; *) same+=("$1" "$2") ;; esac  # what the next part repeats
       shift ;;
     *) die "unknown argument $1 (use --quick, --first-seed K, --seeds N, --frames F, --budget-minutes M," \
-           "--parallel P, --sear, --out DIR, --copy-to DIR, --render-quality paper|fast, --eval-every FRAMES)" ;;
+           "--parallel P, --sear, --processes, --out DIR, --copy-to DIR, --render-quality paper|fast, --eval-every FRAMES)" ;;
   esac
   shift
 done
@@ -142,9 +151,15 @@ EOF
 [ $? = 0 ] || { echo "gpu_campaign.sh: error: the env does not render with MUJOCO_GL=$MUJOCO_GL" \
                       "(see $out/logs/env_probe.log)" >&2; exit 1; }
 
+group=$([ $processes = 0 ] && [ "$seeds" -ge 2 ] && echo 1 || echo 0)  # one group per method, or a process per seed
 jobs=()
-for s in $(seq "$first" "$last"); do jobs+=("drq-$s"); done
-[ $sear = 1 ] && for s in $(seq "$first" "$last"); do jobs+=("sear-$s"); done
+if [ $group = 1 ]; then
+  jobs+=(drq-group)
+  [ $sear = 1 ] && jobs+=(sear-group)
+else
+  for s in $(seq "$first" "$last"); do jobs+=("drq-$s"); done
+  [ $sear = 1 ] && for s in $(seq "$first" "$last"); do jobs+=("sear-$s"); done
+fi
 # The cores this process may use (its CPU affinity). Not plain `nproc`: it honours OMP_NUM_THREADS, which this
 # script set to 1 above for the runs' other threads, and so counted 1 core on the 16-core machine.
 cores=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)
@@ -162,6 +177,8 @@ if [ "$device" = cuda ]; then
   fi
 fi
 threads=$(( cores / slots ))  # the cores shared out: 4 runs of 4 threads on 16 cores is what was measured
+# a group: its seeds' env workers take most cores, its learner a few (torch threads); its GPU memory grows with them
+[ $group = 1 ] && threads=$(( cores > 8 ? 4 : cores ))
 
 # The rung's command (EXPERIMENTS.md, Rung PC), without --save-buffer: no run here is resumed.
 rung=(--env cartpole-balance_sparse --frames "$frames" --action-repeat 2 --frame-stack 3 --batch-size 256 --lr 1e-4
@@ -171,6 +188,8 @@ rung=(--env cartpole-balance_sparse --frames "$frames" --action-repeat 2 --frame
       --render-quality "$quality" --threads "$threads" --device "$device")
 [ $quick = 1 ] && rung+=(--seed-frames 80 --exploration-steps 40 --max-episode-steps 25 --batch-size 8
                          --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2)
+# a group's rings: every step of F frames at action repeat 2, and a reset slot per episode (1000 steps a most)
+[ $group = 1 ] && [ $quick = 0 ] && rung+=(--replay-size $(( frames / 2 + frames / 500 + 100 )))
 
 slowest=0
 next=0
@@ -198,7 +217,8 @@ while :; do
   while [ ${#pid_of[@]} -lt "$slots" ] && [ $next -lt ${#jobs[@]} ] && [ $left -gt $slowest ]; do
     job=${jobs[$next]}
     next=$((next + 1))
-    "$py" sear.py "${rung[@]}" --method "${job%-*}" --seed "${job##*-}" --run-root "$out/runs/$job" \
+    if [ $group = 1 ]; then who=(--seeds "$first-$last"); else who=(--seed "${job##*-}"); fi
+    "$py" sear.py "${rung[@]}" --method "${job%-*}" "${who[@]}" --run-root "$out/runs/$job" \
       > "$out/logs/$job.log" 2>&1 &
     pid_of[$job]=$!
     began_of[$job]=$SECONDS
@@ -217,7 +237,7 @@ rule=("$py" benchmarks/published_curve.py "$out/runs" --methods "${methods[@]}" 
 match_seeds=$("$py" -c 'import sys; sys.path.insert(0, "benchmarks"); import published_curve as p; print(p.MATCH_SEEDS)' \
               2>/dev/null || echo 16)  # the seeds the rule needs for MATCH
 rule_status=0
-if compgen -G "$out/runs/*/*/config.json" > /dev/null; then
+if [ -n "$(find "$out/runs" -name config.json -print -quit 2>/dev/null)" ]; then
   "${rule[@]}" > "$out/logs/published_curve.log" 2>&1
   rule_status=$?
 else  # every run stopped before it made its run dir
@@ -236,27 +256,30 @@ fi
          "40k frames do not fit 9 minutes; docs/published-curve.md#the-gpu-campaign)"
   fi
   echo
+  if [ $group = 1 ]; then how="one sear.py --seeds $first-$last group per method, $threads torch threads (cores $cores)"
+  else how="$slots at a time, $threads torch threads each (cores $cores, --parallel $parallel$(
+       [ "$device" = cuda ] && echo ", GPU memory at $gib_per_run GiB per run"))"; fi
   echo "seeds $first-$last of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \
-       "$slots at a time, $threads torch threads each (cores $cores, --parallel $parallel$(
-       [ "$device" = cuda ] && echo ", GPU memory at $gib_per_run GiB per run"));" \
-       "budget $budget_s s, runs stopped from $((stop_at - start)) s"
+       "$how; budget $budget_s s, runs stopped from $((stop_at - start)) s"
   echo
   for job in "${jobs[@]}"; do echo "$job ${status_of[$job]:-not_started} ${wall_of[$job]:-}"; done > "$out/logs/status.txt"
   "$py" - "$out" "$frames" <<'EOF'
-import csv, glob, sys
+import csv, glob, json, sys
 out, frames = sys.argv[1], int(sys.argv[2])
 print("| run | status | frames reached | wall time | frames/s |\n|---|---|---|---|---|")
 for line in open(f"{out}/logs/status.txt"):
     job, status, *wall = line.split()
-    rows = [r for p in glob.glob(f"{out}/runs/{job}/*/train.csv") for r in csv.DictReader(open(p))]
-    reached = max((int(r["frame"]) for r in rows), default=0)
     said = {"0": "reached F", "stopped": "stopped by the budget", "not_started": "not started (budget)"}.get(
         status, f"FAILED (exit {status}: logs/{job}.log)")
-    if status == "0" and reached < frames:
-        said = f"ended below F (logs/{job}.log)"
     seconds = int(wall[0]) if wall else 0
-    print(f"| {job} | {said} | {reached} | {seconds} s | {reached / seconds:.1f} |" if seconds else
-          f"| {job} | {said} | {reached} | | |")
+    # a run: runs/<job>/<run dir>; a group: runs/<job>/<group dir>/<each seed's run dir>, frames/s of all of them
+    paths = sorted(glob.glob(f"{out}/runs/{job}/*/train.csv") or glob.glob(f"{out}/runs/{job}/*/*/train.csv"))
+    reached = [max((int(r["frame"]) for r in csv.DictReader(open(p))), default=0) for p in paths] or [0]
+    if status == "0" and min(reached) < frames:
+        said = f"ended below F (logs/{job}.log)"
+    seeds = f" ({len(paths)} seeds)" if len(paths) > 1 else ""
+    print(f"| {job}{seeds} | {said} | {min(reached)} | {seconds} s | {sum(reached) / seconds:.1f} |" if seconds else
+          f"| {job}{seeds} | {said} | {min(reached)} | | |")
 EOF
   if [ -s "$out/logs/gpu.csv" ]; then
     awk -F', ' '{u += $1; n++; if ($1 > umax) umax = $1; if ($2 > mmax) mmax = $2}

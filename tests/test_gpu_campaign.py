@@ -76,7 +76,8 @@ def test_the_budget_stops_the_runs_and_the_summary_says_so(tmp_path, campaign):
     assert p.returncode == 0, err
     summary = (out / "summary.md").read_text()
     assert summary.strip() in stdout
-    assert "| drq-1 | stopped by the budget |" in summary
+    assert "| drq-group (2 seeds) | stopped by the budget |" in summary  # two seeds: one sear.py --seeds group
+    assert "one sear.py --seeds 1-2 group per method" in summary
     assert summary.strip().splitlines()[-1].endswith("budget 45 s: within")
     assert runs_of(out) == []
 
