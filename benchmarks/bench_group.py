@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 RUNG = ["--env", "cartpole-balance_sparse", "--method", "drq", "--action-repeat", "2", "--batch-size", "256",
         "--std-steps", "100000", "--eval-every", "1000000", "--eval-episodes", "1", "--replay-size", "30000"]
-QUICK = ["--batch-size", "8", "--latent-dim", "64", "--hidden-dim", "32", "--feature-dim", "16",
+QUICK = ["--batch-size", "8", "--latent-dim", "64", "--hidden-dim", "32", "--feature-dim", "16", "--max-episode-steps", "25",
          "--seed-frames", "80", "--exploration-steps", "40", "--render-quality", "fast", "--replay-size", "2000"]
 
 

@@ -19,7 +19,7 @@
 # replay ring of the frames' steps (it never wraps, as DrQ-v2's 1M one does not in 40k frames: the same
 # draws); --processes runs one sear.py per seed instead, P at a time (how parts 1 and later ran).
 #
-# Defaults: seeds 1-4, 40000 frames, 4 at a time, 9 minutes. Sizing (measured on the lent H200 machine: 16
+# Defaults: seeds 1-4, 40000 frames, 4 at a time, 9 minutes. Sizing (measured on an H200 machine: 16
 # cores, EGL drawing on the GPU; docs/published-curve.md#the-gpu-campaign): four DrQ runs at once make ~100-108
 # frames/s each (~413 together), so a seed's 40k frames take 370-400 s, and its evaluations at 0, 20k and
 # 40k (10 episodes of 500 agent steps each, 15,000 steps at ~900 steps/s) ~17 s more: ~390-417 s, under the

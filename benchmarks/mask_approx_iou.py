@@ -2,7 +2,7 @@
 
 Plays random-action episodes of each env, takes the clean robot mask of every --every-th agent step
 and compares it with two approximations of that same mask: `envs.approximate_mask` (the authors'
-SlimMaskWrapper: 3x down / up, sigma 0.5, threshold 0.9, the default since issue 19) and this
+SlimMaskWrapper: 3x down / up, sigma 0.5, threshold 0.9, the default today) and this
 project's earlier transform (4x area down, bilinear up, sigma 1.5, threshold 0.5). Prints, per env
 and transform, the mean / min / max IoU over the frames and the share of robot pixels kept.
 `--skimage` also checks `envs.approximate_mask` against scikit-image's rescale and gaussian called as
@@ -31,7 +31,7 @@ ENVS = ("walker-walk", "cup-catch", "cheetah-run", "metaworld-door-open", "metaw
 
 
 def earlier(mask: np.ndarray) -> np.ndarray:
-    """The transform --mask-approx used before issue 19 (kept here only to compare with)."""
+    """The transform --mask-approx used before it followed the authors (kept here only to compare with)."""
     h, w = mask.shape
     small = Image.fromarray(mask.astype(np.uint8) * 255).resize((w // 4, h // 4), Image.BOX)
     big = np.asarray(small.resize((w, h), Image.BILINEAR), dtype=np.float32) / 255.0
