@@ -226,11 +226,54 @@ def _drqv2_std_steps(cfg):
     return envs.exploration_std_steps(cfg.env)
 
 
-# Per-task (and per-method) defaults, applied under both recipes before the recipe's own rows. The paper's
-# multi-task settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a
-# smaller latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
-# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task. DEAR
-# takes c1 (its cosine term) and c2 from its released dear.yaml (docs/dear.md).
+# DrM's dm_control task configs (github.com/XuGW-Kevin/DrM at 317116a, cfgs/): what a --drm run on each
+# task takes where it differs from this project's defaults. Every task: its cfgs/task/<task>.yaml (the
+# `hard` group's exploration schedule, lr, feature_dim, batch_size, replay_buffer_size,
+# agent.max_perturb_factor) over cfgs/config.yaml (replay_buffer_size 1000000). agent.target_lambda is 0.6
+# in all of them (the --drm-lambda default); nstep is config.yaml's 3 everywhere (ours). docs/drm.md.
+_DRM_HARD = {"std_steps": 2_000_000}                   # cfgs/task/hard.yaml: linear(1.0,0.1,2000000)
+_DRM_BIG = {"lr": 8e-5, "feature_dim": 100}            # dog_* and humanoid_*
+_DRM_REPLAY = {"replay_size": 1_000_000}               # cfgs/config.yaml: replay_buffer_size
+DRM_TASKS = {
+    "acrobot-swingup": {**_DRM_REPLAY},
+    "acrobot-swingup_sparse": {**_DRM_REPLAY, **_DRM_HARD, "drm_max_perturb": 0.9},
+    "cartpole-swingup_sparse": {**_DRM_REPLAY},
+    "cheetah-run": {**_DRM_REPLAY},
+    "dog-run": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "dog-stand": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "dog-trot": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.9},
+    "dog-walk": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "hopper-hop": {**_DRM_REPLAY},
+    "humanoid-run": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "humanoid-stand": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.9},
+    "humanoid-walk": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.9},
+    "manipulator-bring_ball": {**_DRM_REPLAY, **_DRM_HARD, "lr": 8e-5, "drm_max_perturb": 0.9},
+    "quadruped-run": {"replay_size": 100_000},
+    "quadruped-walk": {"replay_size": 100_000},
+    "reacher-easy": {**_DRM_REPLAY},
+    "reacher-hard": {**_DRM_REPLAY},
+    "walker-run": {**_DRM_REPLAY, "batch_size": 512},
+}
+DRM_MAX_PERTURB = {env: task["drm_max_perturb"] for env, task in DRM_TASKS.items() if "drm_max_perturb" in task}
+_DRM_SOURCE = {"std_steps": "cfgs/task/hard.yaml: stddev_schedule linear(1.0,0.1,2000000)",
+               "lr": "cfgs/task/<task>.yaml: lr", "feature_dim": "cfgs/task/<task>.yaml: feature_dim",
+               "batch_size": "cfgs/task/walker_run.yaml: batch_size",
+               "replay_size": "cfgs/config.yaml: replay_buffer_size; cfgs/task/quadruped_{run,walk}.yaml",
+               "drm_max_perturb": "cfgs/task/<task>.yaml: agent.max_perturb_factor"}
+
+
+def _drm_row(name):
+    """The TASK_DEFAULTS row of DrM's value of `name` (DRM_TASKS) for --drm runs on its tasks."""
+    return (name, lambda cfg: cfg.drm and name in DRM_TASKS.get(cfg.env, {}), lambda cfg: DRM_TASKS[cfg.env][name],
+            f"DrM's {_DRM_SOURCE[name]}")
+
+
+# Per-task (and per-method) defaults, applied under both recipes before the recipe's own rows; a later row
+# wins over an earlier one. The paper's multi-task settings (its hyper-parameter table): the task sets
+# (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x longer exploration schedule; the
+# authors' code keeps latent 4096 there (its row in RECIPES). Plain dm_control tasks (the paper is silent)
+# take DrQ-v2's exploration schedule by task. DEAR takes c1 (its cosine term) and c2 from its released
+# dear.yaml (docs/dear.md). --drm runs on DrM's dm_control tasks take DrM's task config (DRM_TASKS).
 TASK_DEFAULTS = (
     ("recon_coef", _dear, 1.0, "DEAR's dear/cfgs/agent/dear.yaml: reconstruction_loss_coeff (its cosine term)"),
     ("mask_coef", _dear, 0.25, "DEAR's dear/cfgs/agent/dear.yaml: mask_loss_coeff"),
@@ -239,24 +282,22 @@ TASK_DEFAULTS = (
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
     ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
      "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
-    ("drm_max_perturb", lambda cfg: cfg.drm and cfg.env in DRM_MAX_PERTURB, lambda cfg: DRM_MAX_PERTURB[cfg.env],
-     "DrM's cfgs/task/<task>.yaml: agent.max_perturb_factor"),
+    *map(_drm_row, _DRM_SOURCE),
 )
 
 # What --help says of the rows above: a field's default there is the value where no row applies.
+_DRM_ON = "with --drm on DrM's tasks (cli.DRM_TASKS, docs/drm.md)"
 TASK_DEFAULTS_HELP = {
     "latent_dim": "512 on the task sets (metaworld-mt3, -mt10, -mt50)",
     "std_steps": "2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 (easy), 500000 (medium, and "
-                 "every task not in its table), 2000000 (hard: humanoid)",
+                 f"every task not in its table), 2000000 (hard: humanoid); 2000000 {_DRM_ON}: DrM's hard tasks",
     "recon_coef": "1.0 with --method dear", "mask_coef": "0.25 with --method dear",
-    "drm_max_perturb": "0.9 or 0.6 on the tasks in cli.DRM_MAX_PERTURB",
+    "drm_max_perturb": f"0.9 or 0.6 {_DRM_ON}",
+    "lr": f"8e-05 {_DRM_ON}: dog-*, humanoid-*, manipulator-bring_ball",
+    "feature_dim": f"100 {_DRM_ON}: dog-*, humanoid-*",
+    "replay_size": f"1000000 {_DRM_ON}, 100000 on quadruped-run and -walk",
+    "batch_size": f"512 {_DRM_ON}: walker-run",
 }
-
-# --drm's shrink factor where DrM's task cfgs (github.com/XuGW-Kevin/DrM, cfgs/task) set it below the
-# 1.0 of their medium tasks (acrobot_swingup, cheetah_run, hopper_hop, quadruped, reacher, walker_run, ...).
-DRM_MAX_PERTURB = {"acrobot-swingup_sparse": 0.9, "manipulator-bring_ball": 0.9, "humanoid-stand": 0.9,
-                   "humanoid-walk": 0.9, "dog-trot": 0.9, "humanoid-run": 0.6, "dog-run": 0.6, "dog-stand": 0.6,
-                   "dog-walk": 0.6}
 DRM_SUFFIX = "+drm"  # sweep.py's and the tables' name of a method run with --drm: drq+drm is DrM
 
 
