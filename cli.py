@@ -74,6 +74,9 @@ class RunConfig:
     log_every: float = arg(10.0, "seconds between progress lines")
     snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at the next "
                                         "episode end (0 = after every episode)")
+    drop_inapplicable: bool = arg(False, "drop the flags given where they do nothing (their 'only for') with one "
+                                         "line, instead of refusing them: sweep.py passes one set of flags to every "
+                                         "method of a grid", saved=False)
 
 
 class ConfigError(ValueError):
@@ -315,10 +318,10 @@ def split_method_label(label: str) -> tuple[str, tuple[str, ...]]:
 
 def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
     """Set the per-task rows (TASK_DEFAULTS), then the recipe's values on `cfg`, except fields the user
-    gave explicitly. Returns what changed."""
+    gave explicitly and fields that do nothing in this run (APPLIES). Returns what changed."""
     changed = {}  # a recipe row may override a per-task row: report the value that stands
     for name, applies, value, source in (*TASK_DEFAULTS, *RECIPES.get(recipe, ())):
-        if name in explicit or not applies(cfg):
+        if name in explicit or not applies(cfg) or not acts(name, vars(cfg)):  # never a value that does nothing
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)
         changed[name] = f"{name}={getattr(cfg, name)} ({source})"
@@ -349,27 +352,84 @@ def field_groups(Config) -> list:
     return groups + [("the run (cli.py RunConfig)", RunConfig(), list(dataclasses.fields(RunConfig)))]
 
 
-def build_parser(Config, methods: dict) -> OneLineParser:
-    """One flag per field of Config and RunConfig, its help the field's doc; enums take `choices`."""
-    parser = OneLineParser(prog="sear.py", description="SEAR: Structured Environment-Agent Representations "
-                                                       "for visual RL (ICML 2023).")
-    for title, defaults, fields in field_groups(Config):
-        group = parser.add_argument_group(title)
-        for f in fields:
-            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r}"
-            help_text += f"; per task: {TASK_DEFAULTS_HELP[f.name]})" if f.name in TASK_DEFAULTS_HELP else ")"
-            help_text = help_text.replace("%", "%%")  # argparse formats help with %: "0.8%" must reach it as "0.8%%"
-            choices = f.metadata.get("choices")
-            if f.name == "method":  # the METHODS table documents itself
-                help_text = "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
-                choices = list(methods)
-            if f.type in ("bool", bool):
-                group.add_argument(flag(f.name), action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
-                                   help=help_text)
-            else:
-                typ = {"int": int, "float": float, "str": str}[f.type if isinstance(f.type, str) else f.type.__name__]
-                group.add_argument(flag(f.name), type=typ, default=argparse.SUPPRESS, help=help_text,
-                                   choices=choices)
+# --help: the flags that matter (docs/flags.md), in these groups; --help-all: every flag, by the dataclass
+# that holds it. Both are generated from the fields' docs, defaults, choices and APPLIES.
+HELP_GROUPS = (
+    ("what to run", ("env", "method", "drm", "recipe", "seed", "frames")),
+    ("the method", ("recon_coef", "mask_coef", "curl_lr", "dear_feature", "std_steps", "precision")),
+    ("robot masks", ("mask_noise", "mask_approx", "mask_source", "mask_downsample")),
+    ("the suites", ("backgrounds", "difficulty", "camera_distraction", "color_distraction", "render_quality",
+                    "pole_inertia", "kitchen_camera", "eval_episodes_per_task")),
+    ("budgets", ("batch_size", "replay_size", "eval_every", "max_episode_steps")),
+    ("the process", ("device", "threads", "prefetch", "run_root", "resume", "evaluate", "init_from", "init_parts",
+                     "save_video", "save_buffer", "snapshot_minutes")),
+)
+METAVARS = {"env": "ENV", "resume": "RUN_DIR", "evaluate": "RUN_DIR", "init_from": "RUN_DIR", "run_root": "DIR",
+            "device": "DEVICE", "replay_device": "DEVICE", "backgrounds": "davis|DIR",
+            "mask_source": "sim|learned:PATH"}
+
+
+def help_text(f, defaults, methods: dict) -> str:
+    """A flag's help: its doc, its default (and per-task defaults), and where it acts (APPLIES)."""
+    if f.name == "method":  # the METHODS table documents itself
+        return "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
+    text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r}"
+    text += f"; per task: {TASK_DEFAULTS_HELP[f.name]})" if f.name in TASK_DEFAULTS_HELP else ")"
+    text += f"; only for {APPLIES[f.name][1]}" if f.name in APPLIES else ""
+    return text.replace("%", "%%")  # argparse formats help with %: "0.8%" must reach it as "0.8%%"
+
+
+def add_flag(group, f, help_text: str, methods: dict) -> None:
+    """One field as one flag: --x / --no-x for booleans, a typed value otherwise."""
+    if f.type in ("bool", bool):
+        group.add_argument(flag(f.name), action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
+                           help=help_text)
+        return
+    kind = f.type if isinstance(f.type, str) else f.type.__name__
+    choices = list(methods) if f.name == "method" else f.metadata.get("choices")
+    group.add_argument(flag(f.name), type={"int": int, "float": float, "str": str}[kind], choices=choices,
+                       default=argparse.SUPPRESS, help=help_text,
+                       metavar=None if choices else METAVARS.get(f.name, {"int": "N", "float": "X"}.get(kind, "TEXT")))
+
+
+class HelpAll(argparse.Action):
+    """--help-all: the help of every flag (the parser `full()` builds), then exit."""
+
+    def __init__(self, option_strings, dest, full=None, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+        self.full = full
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        self.full().print_help()
+        parser.exit()
+
+
+def help_sections(Config, full: bool) -> list:
+    """[(title, field names)] of --help (HELP_GROUPS, then the rest untitled: parsed, not shown) or, full,
+    of --help-all (every field by its dataclass)."""
+    if full:
+        return [(title, [f.name for f in fields]) for title, _, fields in field_groups(Config)]
+    shown = {name for _, names in HELP_GROUPS for name in names}
+    rest = [f.name for _, _, fields in field_groups(Config) for f in fields if f.name not in shown]
+    return [*HELP_GROUPS, (None, rest)]
+
+
+def build_parser(Config, methods: dict, full=False) -> OneLineParser:
+    """One flag per field of Config and RunConfig. --help shows HELP_GROUPS' flags, --help-all (full=True)
+    every flag by its dataclass; the others parse all the same."""
+    fields = {f.name: (f, defaults) for _, defaults, group in field_groups(Config) for f in group}
+    epilog = f"The flags that matter; all {len(fields)}: python sear.py --help-all. docs/flags.md has both."
+    parser = OneLineParser(prog="sear.py", usage="%(prog)s [--env ENV] [--method METHOD] [--FLAG VALUE ...] | "
+                                                 "--resume RUN_DIR | --evaluate RUN_DIR",
+                           description="SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023).",
+                           epilog=None if full else epilog)
+    parser.add_argument("--help-all", action=HelpAll, full=lambda: build_parser(Config, methods, full=True),
+                        help=f"show all {len(fields)} flags and exit")
+    for title, names in help_sections(Config, full):
+        group = parser.add_argument_group(title) if title else parser
+        for name in names:
+            f, defaults = fields[name]
+            add_flag(group, f, help_text(f, defaults, methods) if title else argparse.SUPPRESS, methods)
     return parser
 
 
@@ -391,8 +451,8 @@ def negative_numbers_as_values(argv: list[str]) -> list[str]:
 
 
 def flag_names(Config) -> set[str]:
-    """Every flag sear.py's parser has: one per field, plus --no-X for booleans."""
-    names = set()
+    """Every flag sear.py's parser has: one per field, plus --no-X for booleans, and --help-all."""
+    names = {"--help-all"}
     for f in (*dataclasses.fields(Config), *dataclasses.fields(RunConfig)):
         names.add(flag(f.name))
         if f.type in ("bool", bool):
@@ -412,6 +472,154 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
     return no_such_flag(flags[0], known) if flags else f"unrecognized arguments: {' '.join(extras)}"
 
 
+# ------------------------------------------------------------------------------------------------
+# Where each setting acts: a flag given where it does nothing is refused (or, for sweep.py, dropped)
+# ------------------------------------------------------------------------------------------------
+# The methods by what they read, named here (plot.py reads config.json without torch); tests check them
+# against sear.METHODS (uses_mask, encoder): a new method that uses the mask or the pooled encoder is added here.
+MASK_METHODS = ("sear", "sear-nosplit", "rgbm", "dear")                   # Method.uses_mask
+POOLED_METHODS = ("sear", "ae", "mae", "curl", "sear-nosplit", "dear")    # Method.encoder == "pooled"
+TASK_SETS = ("mt3", "mt10", "mt50")  # metaworld-<set>; envs.py's _METAWORLD_SETS
+
+
+def suite_of(env: str) -> str:
+    """dmc | distracting | metaworld | task-set | kitchen | adroit: the suite of an env name as envs.py names
+    them, read from the name alone (no MuJoCo; tests check it against envs.py's parser)."""
+    prefix, _, rest = env.partition("-")
+    if env.endswith("-distracting"):
+        return "distracting"
+    if prefix == "metaworld":
+        return "task-set" if rest in TASK_SETS else "metaworld"
+    return prefix if prefix in ("kitchen", "adroit") else "dmc"
+
+
+def listing(names) -> str:
+    """'a, b and c'."""
+    names = list(names)
+    return ", ".join(names[:-1]) + f" and {names[-1]}" if len(names) > 1 else "".join(names)
+
+
+def only_methods(*names, text=None):
+    """An APPLIES row: the setting acts with these --method values."""
+    return lambda c: c.get("method", "sear") in names, text or f"--method {listing(names)}"
+
+
+def only_suites(*suites, text):
+    return lambda c: suite_of(c.get("env", "")) in suites, text
+
+
+def _uses_mask(c) -> bool:
+    return c.get("method", "sear") in MASK_METHODS
+
+
+_MASK = f"methods that use the robot mask (--method {listing(MASK_METHODS)})"
+_DRM = (lambda c: bool(c.get("drm")), "runs with --drm")
+_DISTRACTING = only_suites("distracting", text="Distracting Control (*-distracting envs)")
+
+# Where each setting acts, one row per field: (acts(settings), what it is for). `settings` is a run's
+# config as config.json holds it (a dict: an old run's may lack later fields). A field without a row acts
+# in every run and is listed in EVERYWHERE; tests/test_applies.py fails on a field in neither.
+APPLIES = {
+    "mask_noise": (_uses_mask, _MASK),
+    "mask_approx": (_uses_mask, _MASK),
+    "mask_source": (_uses_mask, _MASK),
+    "learned_mask_iou": (lambda c: _uses_mask(c) and c.get("mask_source", "sim") != "sim",
+                         "--mask-source learned:PATH, with one of the " + _MASK),
+    "mask_downsample": (lambda c: _uses_mask(c) and suite_of(c.get("env", "")) in ("metaworld", "task-set", "kitchen",
+                                                                                   "adroit"),
+                        "the manipulation suites (metaworld-*, kitchen-*, adroit-*; dm_control renders masks at 84), "
+                        "with one of the " + _MASK),
+    "latent_dim": only_methods(*POOLED_METHODS, text=f"SEAR's pooled encoder (--method {listing(POOLED_METHODS)}; "
+                                                     f"drq and rgbm flatten the feature map)"),
+    "recon_coef": only_methods("sear", "sear-nosplit", "ae", "mae", "dear",
+                               text="--method sear, sear-nosplit, ae (2 x c1), mae and dear (c1 of its cosine term)"),
+    "mask_coef": only_methods("sear", "sear-nosplit", "dear"),
+    "ae_latent_lambda": only_methods("ae"),
+    "mae_ratio": only_methods("mae"),
+    "mae_patch": only_methods("mae"),
+    "curl_tau": only_methods("curl"),
+    "curl_lr": only_methods("curl"),
+    "dear_feature": only_methods("dear"),
+    **dict.fromkeys(("drm_dormant_threshold", "drm_target_ratio", "drm_dormant_temp", "drm_lambda", "drm_lambda_temp",
+                     "drm_perturb_every", "drm_min_perturb", "drm_max_perturb", "drm_perturb_rate", "drm_expectile"),
+                    _DRM),
+    **dict.fromkeys(("backgrounds", "difficulty", "camera_distraction", "color_distraction"), _DISTRACTING),
+    "pole_inertia": (lambda c: suite_of(c.get("env", "")) in ("dmc", "distracting")
+                     and c.get("env", "").startswith("cartpole-"),
+                     "cartpole (cartpole-* and cartpole-*-distracting envs)"),
+    "kitchen_camera": only_suites("kitchen", text="Kitchen (kitchen-* envs)"),
+    "eval_episodes_per_task": only_suites("task-set", text="the task sets (metaworld-mt3, -mt10, -mt50)"),
+    "eval_episodes": (lambda c: not (suite_of(c.get("env", "")) == "task-set" and c.get("eval_episodes_per_task")),
+                      "runs other than a task set given --eval-episodes-per-task (which then sets every "
+                      "task's episodes)"),
+    "init_parts": (lambda c: bool(c.get("init_from")), "runs with --init-from"),
+}
+EVERYWHERE = frozenset((
+    "env", "method", "drm", "seed", "frames", "action_repeat", "max_episode_steps", "eval_every", "precision",
+    "frame_stack", "replay_size", "seed_frames", "exploration_steps", "nstep", "batch_size", "discount", "lr",
+    "update_every", "critic_tau", "feature_dim", "hidden_dim", "std_start", "std_end", "std_steps", "std_clip",
+    "render_quality",
+    # RunConfig: how the process runs, whatever the experiment
+    "device", "compile", "tf32", "replay_device", "prefetch", "threads", "run_root", "resume", "evaluate", "recipe",
+    "save_buffer", "save_video", "init_from", "log_every", "snapshot_minutes", "drop_inapplicable"))
+
+
+def acts(name: str, settings: dict) -> bool:
+    """Whether setting `name` acts in a run of these settings (APPLIES; a field without a row always does)."""
+    return name not in APPLIES or bool(APPLIES[name][0](settings))
+
+
+def acting_settings(config: dict) -> dict:
+    """A run's config.json less the settings that did nothing in it: what a plot may name a curve by. Runs
+    from before APPLIES recorded them (--method drq --dear-feature push ran as drq)."""
+    return {name: value for name, value in config.items() if acts(name, config)}
+
+
+def given_as(name: str, value) -> str:
+    """A flag as it was typed: --mask-approx, --no-mask-approx, --recon-coef 1.0."""
+    if isinstance(value, bool):
+        return flag(name) if value else "--no-" + flag(name)[2:]
+    return f"{flag(name)} {value}"
+
+
+def idle_flags(cfg, run: RunConfig, given: dict) -> dict:
+    """{name: what it is for} of the flags given that do nothing in this run (APPLIES)."""
+    settings = {**vars(cfg), **vars(run)}
+    return {name: APPLIES[name][1] for name in given if not acts(name, settings)}
+
+
+def refusal(idle: dict, given: dict, where: str) -> str:
+    """'--x 1 does nothing in this run (drq on walker-walk): it is for ...', of one or several flags."""
+    if len(idle) == 1:
+        (name, text), = idle.items()
+        return f"{given_as(name, given[name])} does nothing in this run ({where}): it is for {text}"
+    return (f"{listing(given_as(name, given[name]) for name in idle)} do nothing in this run ({where}): "
+            + "; ".join(f"{flag(name)} is for {text}" for name, text in idle.items()))
+
+
+def check_applies(cfg, run: RunConfig, given: dict, resumed=False) -> set:
+    """A flag given where it does nothing (APPLIES) is one line, exit 2. With --drop-inapplicable (sweep.py:
+    one set of flags for every method of a grid) it is dropped instead: back to its default, which
+    config.json then records (a resumed run keeps its saved value), in one line for all of them. Returns
+    the names dropped."""
+    idle = idle_flags(cfg, run, given)
+    if not idle:
+        return set()
+    where = f"{method_label(cfg)} on {cfg.env}"
+    if not run.drop_inapplicable:
+        raise ConfigError(refusal(idle, given, where))
+    defaults = {**vars(type(cfg)()), **vars(RunConfig())}
+    for name in () if resumed else idle:
+        setattr(cfg if hasattr(cfg, name) else run, name, defaults[name])
+    warn(f"--drop-inapplicable: ignored what does nothing in this run ({where})"
+         + ("" if resumed else ", config.json records the default") + ": "
+         + "; ".join(f"{given_as(name, given[name])} (for {text})" for name, text in idle.items()))
+    return set(idle)
+
+
+# ------------------------------------------------------------------------------------------------
+# Values: types (the parser), ranges, the rules between fields
+# ------------------------------------------------------------------------------------------------
 # The range of each numeric flag; the parser checks the types, `choices` the enums.
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
@@ -428,39 +636,63 @@ RANGES = (
 )
 
 
-def validate(cfg, run: RunConfig, methods: dict) -> None:
-    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields."""
+def _mask_source_ok(source: str) -> bool:
+    return source == "sim" or (source.startswith("learned:") and len(source) > len("learned:"))
+
+
+# The rules between fields: (broken(cfg), what to say).
+RELATIONS = (
+    (lambda cfg: cfg.drm and cfg.drm_perturb_every % cfg.update_every,
+     lambda cfg: f"--drm-perturb-every ({cfg.drm_perturb_every}) must be a multiple of --update-every "
+                 f"({cfg.update_every}): DrM perturbs at the start of an update"),
+    (lambda cfg: cfg.drm_min_perturb > cfg.drm_max_perturb,
+     lambda cfg: f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
+                 f"({cfg.drm_max_perturb})"),
+    (lambda cfg: cfg.latent_dim % 2,
+     lambda cfg: f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}"),
+    (lambda cfg: 84 % cfg.mae_patch, lambda cfg: f"--mae-patch must divide 84, got {cfg.mae_patch}"),
+    (lambda cfg: not _mask_source_ok(cfg.mask_source),
+     lambda cfg: f"--mask-source must be sim or learned:PATH (a segment.py model file), got '{cfg.mask_source}'"),
+)
+
+
+def not_finite(cfg, run) -> str | None:
     for settings in (cfg, run):
         for f in dataclasses.fields(settings):
             value = getattr(settings, f.name)
             if isinstance(value, float) and not math.isfinite(value):  # inf passes every range, NaN none
-                raise ConfigError(f"{flag(f.name)} must be a finite number, got {value}")
+                return f"{flag(f.name)} must be a finite number, got {value}"
+
+
+def out_of_range(cfg, run) -> str | None:
     for rule, holds, names in RANGES:
         for name in names:
             value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
             if not holds(value):
-                raise ConfigError(f"{flag(name)} must be {rule}, got {value}")
-    if cfg.drm and cfg.drm_perturb_every % cfg.update_every:
-        raise ConfigError(f"--drm-perturb-every ({cfg.drm_perturb_every}) must be a multiple of --update-every "
-                          f"({cfg.update_every}): DrM perturbs at the start of an update")
-    if cfg.drm_min_perturb > cfg.drm_max_perturb:
-        raise ConfigError(f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
-                          f"({cfg.drm_max_perturb})")
-    if cfg.latent_dim % 2:
-        raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
-    if 84 % cfg.mae_patch:
-        raise ConfigError(f"--mae-patch must divide 84, got {cfg.mae_patch}")
-    if cfg.mask_source != "sim" and not (cfg.mask_source.startswith("learned:") and cfg.mask_source[8:]):
-        raise ConfigError(f"--mask-source must be sim or learned:PATH (a segment.py model file), got "
-                          f"'{cfg.mask_source}'")
-    if cfg.mask_source != "sim" and not methods[cfg.method].uses_mask:
-        raise ConfigError(f"--mask-source {cfg.mask_source} is for methods that use the robot mask "
-                          f"({', '.join(m for m in methods if methods[m].uses_mask)}), not {cfg.method}")
+                return f"{flag(name)} must be {rule}, got {value}"
+
+
+def unrelated(cfg, run) -> str | None:
+    return next((say(cfg) for broken, say in RELATIONS if broken(cfg)), None)
+
+
+def no_video_writer(cfg, run) -> str | None:
     if run.save_video:
         try:
             import imageio_ffmpeg  # noqa: F401  (brings its own ffmpeg binary)
         except ImportError:
-            raise ConfigError("--save-video needs imageio-ffmpeg: pip install -r requirements.txt") from None
+            return "--save-video needs imageio-ffmpeg: pip install -r requirements.txt"
+
+
+CHECKS = (not_finite, out_of_range, unrelated, no_video_writer)
+
+
+def validate(cfg, run: RunConfig, methods: dict = None) -> None:
+    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields
+    (CHECKS, in order; the first that fails is the one line)."""
+    message = next(filter(None, (check(cfg, run) for check in CHECKS)), None)
+    if message:
+        raise ConfigError(message)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -673,6 +905,7 @@ def evaluate_config(given: dict, Config, methods: dict) -> tuple:
         raise ConfigError(f"{flag(extra[0])} cannot be given with --evaluate (the run's config holds it); "
                           f"only {may} can")
     cfg, run = split_config({**snapshot["config"], "save_video": False, **given}, Config)
+    check_applies(cfg, run, given, resumed=True)  # --eval-episodes-per-task on a single task
     validate(cfg, run, methods)
     return cfg, run, snapshot
 
@@ -689,30 +922,37 @@ def parse_args(argv, Config, methods: dict) -> tuple:
     if given.get("evaluate"):
         return evaluate_config(given, Config, methods)
     if given.get("resume"):
-        snapshot = load_snapshot(given["resume"])
-        check_run_config(given["resume"])
-        saved = snapshot["config"]
-        for k, v in given.items():
-            if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
-                raise ConfigError(f"{flag(k)} cannot change on --resume "
-                                  f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
-        cfg, run = split_config({**saved, **given}, Config)
-        validate(cfg, run, methods)  # a resumed config was resolved when the run started: no recipe again
-        return cfg, run, snapshot
+        return resume_config(given, Config, methods)
     cfg, run = split_config(given, Config)
     validate(cfg, run, methods)
     check_run_root(run.run_root)
     if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
         cfg.mask_source = "learned:" + os.path.abspath(cfg.mask_source[len("learned:"):])
     explicit = set(given)
-    if "init_parts" in given and not run.init_from:
-        raise ConfigError("--init-parts needs --init-from (the run to copy from)")
     if run.init_from:  # the source run fixes the copied networks' sizes; the recipe may not change them
         explicit |= inherit_from_source(cfg, run, explicit, Config)
+    explicit -= check_applies(cfg, run, given)  # after --init-from: the method may be the source run's
     changed = apply_recipe(cfg, run.recipe, explicit)
     if changed:
         print(f"recipe {run.recipe}: " + "; ".join(changed))
     return cfg, run, None
+
+
+def resume_config(given: dict, Config, methods: dict) -> tuple:
+    """--resume RUN_DIR: the run's saved config, with only RESUME_MAY_CHANGE given otherwise, and its
+    snapshot. A resumed config was resolved when the run started: no recipe again."""
+    snapshot = load_snapshot(given["resume"])
+    check_run_config(given["resume"])
+    saved = snapshot["config"]
+    cfg, run = split_config({**saved, **given}, Config)
+    check_applies(cfg, run, given, resumed=True)
+    unsaved = {f.name for f in dataclasses.fields(RunConfig) if not f.metadata["saved"]}
+    for k, v in given.items():
+        if k not in RESUME_MAY_CHANGE | unsaved and saved.get(k) != v:
+            raise ConfigError(f"{flag(k)} cannot change on --resume "
+                              f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
+    validate(cfg, run, methods)
+    return cfg, run, snapshot
 
 
 def main(argv, Config, methods: dict, train, evaluate) -> int:

@@ -170,7 +170,8 @@ rung=(--env cartpole-balance_sparse --frames "$frames" --action-repeat 2 --frame
       --replay-size 1000000 --eval-every "$eval_every" --eval-episodes 10 --precision fp32
       --render-quality "$quality" --threads "$threads" --device "$device")
 [ $quick = 1 ] && rung+=(--seed-frames 80 --exploration-steps 40 --max-episode-steps 25 --batch-size 8
-                         --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2)
+                         --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2
+                         --drop-inapplicable)  # one set for drq and sear: drq has no --latent-dim
 
 slowest=0
 next=0
