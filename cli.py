@@ -172,6 +172,11 @@ def warn(message):
     print(f"sear.py: warning: {message}", file=sys.stderr, flush=True)
 
 
+def plural(n: int, word: str) -> str:
+    """'1 episode', '10 episodes'."""
+    return f"{n} {word}{'s' * (n != 1)}"
+
+
 # ------------------------------------------------------------------------------------------------
 # Recipes
 # ------------------------------------------------------------------------------------------------
@@ -340,6 +345,21 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def whole_number(text: str) -> int:
+    """An int flag's value: an integer, or a float that is one (--frames 1e6, 2.5e5); else one line."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}'") from None
+    if not value.is_integer():  # also inf and nan
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}' is not a whole number")
+    return int(value)
+
+
 def field_groups(Config) -> list:
     """[(title, defaults, fields)] of the flags: Config's own fields, those of each dataclass it inherits
     (sear.Config, drm.DrMConfig, ...), then RunConfig's."""
@@ -380,14 +400,14 @@ def help_text(f, defaults, methods: dict) -> str:
 
 
 def add_flag(group, f, help_text: str, methods: dict) -> None:
-    """One field as one flag: --x / --no-x for booleans, a typed value otherwise."""
+    """One field as one flag: --x / --no-x for booleans, a typed value otherwise (ints also as 1e6)."""
     if f.type in ("bool", bool):
         group.add_argument(flag(f.name), action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
                            help=help_text)
         return
     kind = f.type if isinstance(f.type, str) else f.type.__name__
     choices = list(methods) if f.name == "method" else f.metadata.get("choices")
-    group.add_argument(flag(f.name), type={"int": int, "float": float, "str": str}[kind], choices=choices,
+    group.add_argument(flag(f.name), type={"int": whole_number, "float": float, "str": str}[kind], choices=choices,
                        default=argparse.SUPPRESS, help=help_text,
                        metavar=None if choices else METAVARS.get(f.name, {"int": "N", "float": "X"}.get(kind, "TEXT")))
 
@@ -620,6 +640,12 @@ def check_applies(cfg, run: RunConfig, given: dict, resumed=False) -> set:
 # ------------------------------------------------------------------------------------------------
 # Values: types (the parser), ranges, the rules between fields
 # ------------------------------------------------------------------------------------------------
+# Seeds: numpy's legacy seeding (np.random.seed, dm_control's and Meta-World's RandomState) takes [0, 2^32),
+# and the eval env's seed is the run's + 100000 (experiment.EVAL_SEED). Episodes' reset seeds go to
+# default_rng, which takes any non-negative integer.
+EVAL_SEED = 100_000
+MAX_SEED = 2**32 - 1 - EVAL_SEED
+
 # The range of each numeric flag; the parser checks the types, `choices` the enums.
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
@@ -633,6 +659,8 @@ RANGES = (
                                               "camera_distraction", "color_distraction", "drm_dormant_threshold",
                                               "drm_target_ratio", "drm_lambda", "drm_min_perturb", "drm_max_perturb",
                                               "drm_expectile")),
+    (f"in [0, {MAX_SEED}] (numpy seeds below 2^32, and the eval env's is --seed + {EVAL_SEED})",
+     lambda v: 0 <= v <= MAX_SEED, ("seed",)),
 )
 
 
@@ -693,6 +721,25 @@ def validate(cfg, run: RunConfig, methods: dict = None) -> None:
     message = next(filter(None, (check(cfg, run) for check in CHECKS)), None)
     if message:
         raise ConfigError(message)
+
+
+def check_env(cfg) -> None:
+    """An unknown --env is one line ("did you mean") before anything else is read of it."""
+    import envs  # late: --help needs no MuJoCo
+    try:
+        envs.default_action_repeat(cfg.env)
+    except envs.EnvError as e:
+        raise ConfigError(str(e)) from None
+
+
+def check_learning_starts(cfg) -> None:
+    """Learning starts once the replay holds the seed frames' steps: a smaller replay never learns."""
+    import envs
+    repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
+    steps = cfg.seed_frames // repeat
+    if cfg.replay_size < steps:
+        raise ConfigError(f"--replay-size {cfg.replay_size} is smaller than the {steps} steps of --seed-frames "
+                          f"{cfg.seed_frames} (action repeat {repeat}): learning would never start")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -925,6 +972,7 @@ def parse_args(argv, Config, methods: dict) -> tuple:
         return resume_config(given, Config, methods)
     cfg, run = split_config(given, Config)
     validate(cfg, run, methods)
+    check_env(cfg)
     check_run_root(run.run_root)
     if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
         cfg.mask_source = "learned:" + os.path.abspath(cfg.mask_source[len("learned:"):])
@@ -933,6 +981,7 @@ def parse_args(argv, Config, methods: dict) -> tuple:
         explicit |= inherit_from_source(cfg, run, explicit, Config)
     explicit -= check_applies(cfg, run, given)  # after --init-from: the method may be the source run's
     changed = apply_recipe(cfg, run.recipe, explicit)
+    check_learning_starts(cfg)
     if changed:
         print(f"recipe {run.recipe}: " + "; ".join(changed))
     return cfg, run, None
@@ -1119,9 +1168,8 @@ def torch_threads(run: RunConfig) -> int:
 
 def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
     """Settings that run, but not as meant: more threads than cores (clamped), Distracting Control without
-    the paper's DAVIS backgrounds, a replay smaller than a batch or than the seed phase (learning starts
-    once the replay holds the seed frames' steps). After the envs are made: the seed phase's steps need
-    the suite's action repeat."""
+    the paper's DAVIS backgrounds, a replay smaller than a batch (one smaller than the seed phase, where
+    learning would never start, is refused: check_learning_starts)."""
     warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
     if threads > cores:
         given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
@@ -1134,10 +1182,6 @@ def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
     if cfg.env.endswith("-distracting") and not cfg.backgrounds:  # a default that is not the paper's: said every run
         warnings.append(f"{cfg.env} runs on the built-in procedural backgrounds, not the paper's DAVIS-2017 videos; "
                         "for the paper's setting: python envs.py --fetch-davis, then --backgrounds davis")
-    seed_steps = cfg.seed_frames // max(1, cfg.action_repeat)
-    if training and cfg.replay_size < seed_steps:
-        warnings.append(f"--replay-size {cfg.replay_size} is smaller than the {seed_steps} steps of --seed-frames "
-                        f"{cfg.seed_frames}: learning never starts")
     return warnings
 
 

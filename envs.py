@@ -66,6 +66,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import argparse
 import atexit
 import collections
+import difflib
 import errno
 import functools
 import hashlib
@@ -255,7 +256,9 @@ def _parse_name(name: str) -> tuple[str, tuple]:
     for domain, task in _dmc_tasks():
         if base == _dmc_name(domain, task) or base == f"{domain}-{task}":
             return ("distracting" if distracting else "dmc"), (domain, task)
-    raise EnvError(f"unknown env {name!r}; valid: {_valid_names_line()}")
+    close = difflib.get_close_matches(name, env_names(), n=1)
+    hint = f"did you mean {close[0]}? " if close else ""
+    raise EnvError(f"unknown env {name!r}; {hint}valid: {_valid_names_line()}")
 
 
 def is_task_set(name: str) -> bool:

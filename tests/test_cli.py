@@ -486,3 +486,90 @@ print(configured, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
         configured, faults[setting] = r.stdout.split()
         assert configured == {"on": "True", "off": "None"}[setting]
     assert int(faults["on"]) < 100 and int(faults["off"]) > 10_000, faults
+
+
+# ---------------------------------------------------------------- what a newcomer types
+def never_train(*args):
+    raise AssertionError("sear.py accepted the flags and started training")
+
+
+def main_in_process(argv, capsys, tmp_path, monkeypatch):
+    """sear.py's exit code and stderr, in this process, for inputs it refuses before training."""
+    import train
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(train, "train", never_train)
+    code = train.main(argv)
+    return code, capsys.readouterr().err
+
+
+def test_every_seed_a_user_can_type_is_one_line_or_works(tmp_path, capsys, monkeypatch):
+    """numpy's legacy seeds (np.random.seed, dm_control's and Meta-World's RandomState) are below 2^32 and the
+    eval env's seed is --seed + 100000: outside [0, 2^32 - 1 - 100000] a seed is one line, inside it trains."""
+    import cli
+    for seed in ("-1", "4294967296", str(cli.MAX_SEED + 1), "1" + "0" * 30):
+        code, err = main_in_process(["--seed", seed], capsys, tmp_path, monkeypatch)
+        assert code == 2 and err == f"sear.py: error: --seed must be in [0, {cli.MAX_SEED}] (numpy seeds below 2^32, " \
+                                    f"and the eval env's is --seed + 100000), got {int(seed)}\n", err
+    assert not (tmp_path / "runs").exists()
+    r = run(["--env", "cup-catch", *TINY, "--frames", "16", "--eval-every", "100", "--seed", str(cli.MAX_SEED)],
+            tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_an_unknown_env_gets_the_nearest_name_before_anything_starts(tmp_path, capsys, monkeypatch):
+    import envs
+    code, err = main_in_process(["--env", "walkr-walk"], capsys, tmp_path, monkeypatch)
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith("sear.py: error: unknown env 'walkr-walk'; did you mean walker-walk? valid: walker-walk, ")
+    assert envs.main(["--list", "--envs", "cheetah-rn"]) == 2
+    assert "unknown env 'cheetah-rn'; did you mean cheetah-run? valid: " in capsys.readouterr().err
+
+
+def test_int_flags_take_whole_numbers_written_as_floats(tmp_path, capsys, monkeypatch):
+    import cli
+    import sear
+    import train
+    monkeypatch.chdir(tmp_path)
+    cfg, _, _ = cli.parse_args(["--frames", "1e6", "--replay-size", "2.5e5", "--seed", "1E3"], train.Config,
+                               sear.METHODS)
+    assert (cfg.frames, cfg.replay_size, cfg.seed) == (1_000_000, 250_000, 1000)
+    assert all(type(v) is int for v in (cfg.frames, cfg.replay_size, cfg.seed))
+    for value, message in (("1.5", "argument --frames: invalid int value: '1.5' is not a whole number"),
+                           ("2.5e0", "argument --frames: invalid int value: '2.5e0' is not a whole number"),
+                           ("inf", "argument --frames: invalid int value: 'inf' is not a whole number"),
+                           ("ten", "argument --frames: invalid int value: 'ten'")):
+        code, err = main_in_process(["--frames", value], capsys, tmp_path, monkeypatch)
+        assert code == 2 and err == f"sear.py: error: {message}\n", err
+
+
+def test_a_replay_smaller_than_the_seed_phase_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
+    """Learning starts once the replay holds the seed frames' steps: a smaller replay would run to the end
+    without one update."""
+    code, err = main_in_process(["--replay-size", "10"], capsys, tmp_path, monkeypatch)
+    assert code == 2 and err == ("sear.py: error: --replay-size 10 is smaller than the 2000 steps of --seed-frames "
+                                 "4000 (action repeat 2): learning would never start\n"), err
+    code, err = main_in_process(["--env", "kitchen-kettle", "--replay-size", "3999"], capsys, tmp_path, monkeypatch)
+    assert code == 2 and "than the 4000 steps of --seed-frames 4000 (action repeat 1)" in err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_one_episode_is_said_in_the_singular(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "toy_pointmass.py"), "--quick", "--eval-episodes", "1",
+                        "--train-episodes", "20", "--out", str(tmp_path / "toy")], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "(1 eval episode each)" in r.stdout and "episodes" not in r.stdout.splitlines()[0]
+
+
+def test_make_env_defaults_are_the_runs():
+    """envs.make_env called without a setting builds what sear.py builds by default (Distracting Control:
+    medium, 8 backgrounds, not all of them)."""
+    import inspect
+
+    import envs
+    import experiment
+    params = inspect.signature(envs.make_env).parameters
+    run = experiment.EnvConfig()
+    shared = [name for name in params if hasattr(run, name) and name != "backgrounds"]  # None there, '' here
+    assert "difficulty" in shared and len(shared) >= 8
+    assert {name: params[name].default for name in shared} == {name: getattr(run, name) for name in shared}
