@@ -506,6 +506,8 @@ def test_every_seed_a_user_can_type_is_one_line_or_works(tmp_path, capsys, monke
     """numpy's legacy seeds (np.random.seed, dm_control's and Meta-World's RandomState) are below 2^32 and the
     eval env's seed is --seed + 100000: outside [0, 2^32 - 1 - 100000] a seed is one line, inside it trains."""
     import cli
+    import experiment
+    assert cli.MAX_SEED + experiment.EVAL_SEED == 2**32 - 1
     for seed in ("-1", "4294967296", str(cli.MAX_SEED + 1), "1" + "0" * 30):
         code, err = main_in_process(["--seed", seed], capsys, tmp_path, monkeypatch)
         assert code == 2 and err == f"sear.py: error: --seed must be in [0, {cli.MAX_SEED}] (numpy seeds below 2^32, " \
