@@ -74,6 +74,9 @@ class RunConfig:
     log_every: float = arg(10.0, "seconds between progress lines")
     snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at the next "
                                         "episode end (0 = after every episode)")
+    drop_inapplicable: bool = arg(False, "drop the flags given where they do nothing (their 'only for') with one "
+                                         "line, instead of refusing them: sweep.py passes one set of flags to every "
+                                         "method of a grid", saved=False)
 
 
 class ConfigError(ValueError):
@@ -169,6 +172,11 @@ def warn(message):
     print(f"sear.py: warning: {message}", file=sys.stderr, flush=True)
 
 
+def plural(n: int, word: str) -> str:
+    """'1 episode', '10 episodes'."""
+    return f"{n} {word}{'s' * (n != 1)}"
+
+
 # ------------------------------------------------------------------------------------------------
 # Recipes
 # ------------------------------------------------------------------------------------------------
@@ -226,11 +234,54 @@ def _drqv2_std_steps(cfg):
     return envs.exploration_std_steps(cfg.env)
 
 
-# Per-task (and per-method) defaults, applied under both recipes before the recipe's own rows. The paper's
-# multi-task settings (its hyper-parameter table): the task sets (metaworld-mt3, -mt10, -mt50) train with a
-# smaller latent and a 4x longer exploration schedule; the authors' code keeps latent 4096 there (its row in
-# RECIPES). Plain dm_control tasks (the paper is silent) take DrQ-v2's exploration schedule by task. DEAR
-# takes c1 (its cosine term) and c2 from its released dear.yaml (docs/dear.md).
+# DrM's dm_control task configs (github.com/XuGW-Kevin/DrM at 317116a, cfgs/): what a --drm run on each
+# task takes where it differs from this project's defaults. Every task: its cfgs/task/<task>.yaml (the
+# `hard` group's exploration schedule, lr, feature_dim, batch_size, replay_buffer_size,
+# agent.max_perturb_factor) over cfgs/config.yaml (replay_buffer_size 1000000). agent.target_lambda is 0.6
+# in all of them (the --drm-lambda default); nstep is config.yaml's 3 everywhere (ours). docs/drm.md.
+_DRM_HARD = {"std_steps": 2_000_000}                   # cfgs/task/hard.yaml: linear(1.0,0.1,2000000)
+_DRM_BIG = {"lr": 8e-5, "feature_dim": 100}            # dog_* and humanoid_*
+_DRM_REPLAY = {"replay_size": 1_000_000}               # cfgs/config.yaml: replay_buffer_size
+DRM_TASKS = {
+    "acrobot-swingup": {**_DRM_REPLAY},
+    "acrobot-swingup_sparse": {**_DRM_REPLAY, **_DRM_HARD, "drm_max_perturb": 0.9},
+    "cartpole-swingup_sparse": {**_DRM_REPLAY},
+    "cheetah-run": {**_DRM_REPLAY},
+    "dog-run": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "dog-stand": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "dog-trot": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.9},
+    "dog-walk": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "hopper-hop": {**_DRM_REPLAY},
+    "humanoid-run": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.6},
+    "humanoid-stand": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.9},
+    "humanoid-walk": {**_DRM_REPLAY, **_DRM_HARD, **_DRM_BIG, "drm_max_perturb": 0.9},
+    "manipulator-bring_ball": {**_DRM_REPLAY, **_DRM_HARD, "lr": 8e-5, "drm_max_perturb": 0.9},
+    "quadruped-run": {"replay_size": 100_000},
+    "quadruped-walk": {"replay_size": 100_000},
+    "reacher-easy": {**_DRM_REPLAY},
+    "reacher-hard": {**_DRM_REPLAY},
+    "walker-run": {**_DRM_REPLAY, "batch_size": 512},
+}
+DRM_MAX_PERTURB = {env: task["drm_max_perturb"] for env, task in DRM_TASKS.items() if "drm_max_perturb" in task}
+_DRM_SOURCE = {"std_steps": "cfgs/task/hard.yaml: stddev_schedule linear(1.0,0.1,2000000)",
+               "lr": "cfgs/task/<task>.yaml: lr", "feature_dim": "cfgs/task/<task>.yaml: feature_dim",
+               "batch_size": "cfgs/task/walker_run.yaml: batch_size",
+               "replay_size": "cfgs/config.yaml: replay_buffer_size; cfgs/task/quadruped_{run,walk}.yaml",
+               "drm_max_perturb": "cfgs/task/<task>.yaml: agent.max_perturb_factor"}
+
+
+def _drm_row(name):
+    """The TASK_DEFAULTS row of DrM's value of `name` (DRM_TASKS) for --drm runs on its tasks."""
+    return (name, lambda cfg: cfg.drm and name in DRM_TASKS.get(cfg.env, {}), lambda cfg: DRM_TASKS[cfg.env][name],
+            f"DrM's {_DRM_SOURCE[name]}")
+
+
+# Per-task (and per-method) defaults, applied under both recipes before the recipe's own rows; a later row
+# wins over an earlier one. The paper's multi-task settings (its hyper-parameter table): the task sets
+# (metaworld-mt3, -mt10, -mt50) train with a smaller latent and a 4x longer exploration schedule; the
+# authors' code keeps latent 4096 there (its row in RECIPES). Plain dm_control tasks (the paper is silent)
+# take DrQ-v2's exploration schedule by task. DEAR takes c1 (its cosine term) and c2 from its released
+# dear.yaml (docs/dear.md). --drm runs on DrM's dm_control tasks take DrM's task config (DRM_TASKS).
 TASK_DEFAULTS = (
     ("recon_coef", _dear, 1.0, "DEAR's dear/cfgs/agent/dear.yaml: reconstruction_loss_coeff (its cosine term)"),
     ("mask_coef", _dear, 0.25, "DEAR's dear/cfgs/agent/dear.yaml: mask_loss_coeff"),
@@ -239,24 +290,22 @@ TASK_DEFAULTS = (
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
     ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
      "DrQ-v2's and the authors' cfgs/task/{easy,medium,hard}.yaml: stddev_schedule by task"),
-    ("drm_max_perturb", lambda cfg: cfg.drm and cfg.env in DRM_MAX_PERTURB, lambda cfg: DRM_MAX_PERTURB[cfg.env],
-     "DrM's cfgs/task/<task>.yaml: agent.max_perturb_factor"),
+    *map(_drm_row, _DRM_SOURCE),
 )
 
 # What --help says of the rows above: a field's default there is the value where no row applies.
+_DRM_ON = "with --drm on DrM's tasks (cli.DRM_TASKS, docs/drm.md)"
 TASK_DEFAULTS_HELP = {
     "latent_dim": "512 on the task sets (metaworld-mt3, -mt10, -mt50)",
     "std_steps": "2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 (easy), 500000 (medium, and "
-                 "every task not in its table), 2000000 (hard: humanoid)",
+                 f"every task not in its table), 2000000 (hard: humanoid); 2000000 {_DRM_ON}: DrM's hard tasks",
     "recon_coef": "1.0 with --method dear", "mask_coef": "0.25 with --method dear",
-    "drm_max_perturb": "0.9 or 0.6 on the tasks in cli.DRM_MAX_PERTURB",
+    "drm_max_perturb": f"0.9 or 0.6 {_DRM_ON}",
+    "lr": f"8e-05 {_DRM_ON}: dog-*, humanoid-*, manipulator-bring_ball",
+    "feature_dim": f"100 {_DRM_ON}: dog-*, humanoid-*",
+    "replay_size": f"1000000 {_DRM_ON}, 100000 on quadruped-run and -walk",
+    "batch_size": f"512 {_DRM_ON}: walker-run",
 }
-
-# --drm's shrink factor where DrM's task cfgs (github.com/XuGW-Kevin/DrM, cfgs/task) set it below the
-# 1.0 of their medium tasks (acrobot_swingup, cheetah_run, hopper_hop, quadruped, reacher, walker_run, ...).
-DRM_MAX_PERTURB = {"acrobot-swingup_sparse": 0.9, "manipulator-bring_ball": 0.9, "humanoid-stand": 0.9,
-                   "humanoid-walk": 0.9, "dog-trot": 0.9, "humanoid-run": 0.6, "dog-run": 0.6, "dog-stand": 0.6,
-                   "dog-walk": 0.6}
 DRM_SUFFIX = "+drm"  # sweep.py's and the tables' name of a method run with --drm: drq+drm is DrM
 
 
@@ -274,10 +323,10 @@ def split_method_label(label: str) -> tuple[str, tuple[str, ...]]:
 
 def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
     """Set the per-task rows (TASK_DEFAULTS), then the recipe's values on `cfg`, except fields the user
-    gave explicitly. Returns what changed."""
+    gave explicitly and fields that do nothing in this run (APPLIES). Returns what changed."""
     changed = {}  # a recipe row may override a per-task row: report the value that stands
     for name, applies, value, source in (*TASK_DEFAULTS, *RECIPES.get(recipe, ())):
-        if name in explicit or not applies(cfg):
+        if name in explicit or not applies(cfg) or not acts(name, vars(cfg)):  # never a value that does nothing
             continue
         setattr(cfg, name, value(cfg) if callable(value) else value)
         changed[name] = f"{name}={getattr(cfg, name)} ({source})"
@@ -296,6 +345,21 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def whole_number(text: str) -> int:
+    """An int flag's value: an integer, or a float that is one (--frames 1e6, 2.5e5); else one line."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}'") from None
+    if not value.is_integer():  # also inf and nan
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}' is not a whole number")
+    return int(value)
+
+
 def field_groups(Config) -> list:
     """[(title, defaults, fields)] of the flags: Config's own fields, those of each dataclass it inherits
     (sear.Config, drm.DrMConfig, ...), then RunConfig's."""
@@ -308,27 +372,84 @@ def field_groups(Config) -> list:
     return groups + [("the run (cli.py RunConfig)", RunConfig(), list(dataclasses.fields(RunConfig)))]
 
 
-def build_parser(Config, methods: dict) -> OneLineParser:
-    """One flag per field of Config and RunConfig, its help the field's doc; enums take `choices`."""
-    parser = OneLineParser(prog="sear.py", description="SEAR: Structured Environment-Agent Representations "
-                                                       "for visual RL (ICML 2023).")
-    for title, defaults, fields in field_groups(Config):
-        group = parser.add_argument_group(title)
-        for f in fields:
-            help_text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r}"
-            help_text += f"; per task: {TASK_DEFAULTS_HELP[f.name]})" if f.name in TASK_DEFAULTS_HELP else ")"
-            help_text = help_text.replace("%", "%%")  # argparse formats help with %: "0.8%" must reach it as "0.8%%"
-            choices = f.metadata.get("choices")
-            if f.name == "method":  # the METHODS table documents itself
-                help_text = "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
-                choices = list(methods)
-            if f.type in ("bool", bool):
-                group.add_argument(flag(f.name), action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
-                                   help=help_text)
-            else:
-                typ = {"int": int, "float": float, "str": str}[f.type if isinstance(f.type, str) else f.type.__name__]
-                group.add_argument(flag(f.name), type=typ, default=argparse.SUPPRESS, help=help_text,
-                                   choices=choices)
+# --help: the flags that matter (docs/flags.md), in these groups; --help-all: every flag, by the dataclass
+# that holds it. Both are generated from the fields' docs, defaults, choices and APPLIES.
+HELP_GROUPS = (
+    ("what to run", ("env", "method", "drm", "recipe", "seed", "frames")),
+    ("the method", ("recon_coef", "mask_coef", "curl_lr", "dear_feature", "std_steps", "precision")),
+    ("robot masks", ("mask_noise", "mask_approx", "mask_source", "mask_downsample")),
+    ("the suites", ("backgrounds", "difficulty", "camera_distraction", "color_distraction", "render_quality",
+                    "pole_inertia", "kitchen_camera", "eval_episodes_per_task")),
+    ("budgets", ("batch_size", "replay_size", "eval_every", "max_episode_steps")),
+    ("the process", ("device", "threads", "prefetch", "run_root", "resume", "evaluate", "init_from", "init_parts",
+                     "save_video", "save_buffer", "snapshot_minutes")),
+)
+METAVARS = {"env": "ENV", "resume": "RUN_DIR", "evaluate": "RUN_DIR", "init_from": "RUN_DIR", "run_root": "DIR",
+            "device": "DEVICE", "replay_device": "DEVICE", "backgrounds": "davis|DIR",
+            "mask_source": "sim|learned:PATH"}
+
+
+def help_text(f, defaults, methods: dict) -> str:
+    """A flag's help: its doc, its default (and per-task defaults), and where it acts (APPLIES)."""
+    if f.name == "method":  # the METHODS table documents itself
+        return "; ".join(f"{name}: {m.doc}" for name, m in methods.items()) + " (default: 'sear')"
+    text = f"{f.metadata['doc']} (default: {getattr(defaults, f.name)!r}"
+    text += f"; per task: {TASK_DEFAULTS_HELP[f.name]})" if f.name in TASK_DEFAULTS_HELP else ")"
+    text += f"; only for {APPLIES[f.name][1]}" if f.name in APPLIES else ""
+    return text.replace("%", "%%")  # argparse formats help with %: "0.8%" must reach it as "0.8%%"
+
+
+def add_flag(group, f, help_text: str, methods: dict) -> None:
+    """One field as one flag: --x / --no-x for booleans, a typed value otherwise (ints also as 1e6)."""
+    if f.type in ("bool", bool):
+        group.add_argument(flag(f.name), action=argparse.BooleanOptionalAction, default=argparse.SUPPRESS,
+                           help=help_text)
+        return
+    kind = f.type if isinstance(f.type, str) else f.type.__name__
+    choices = list(methods) if f.name == "method" else f.metadata.get("choices")
+    group.add_argument(flag(f.name), type={"int": whole_number, "float": float, "str": str}[kind], choices=choices,
+                       default=argparse.SUPPRESS, help=help_text,
+                       metavar=None if choices else METAVARS.get(f.name, {"int": "N", "float": "X"}.get(kind, "TEXT")))
+
+
+class HelpAll(argparse.Action):
+    """--help-all: the help of every flag (the parser `full()` builds), then exit."""
+
+    def __init__(self, option_strings, dest, full=None, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+        self.full = full
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        self.full().print_help()
+        parser.exit()
+
+
+def help_sections(Config, full: bool) -> list:
+    """[(title, field names)] of --help (HELP_GROUPS, then the rest untitled: parsed, not shown) or, full,
+    of --help-all (every field by its dataclass)."""
+    if full:
+        return [(title, [f.name for f in fields]) for title, _, fields in field_groups(Config)]
+    shown = {name for _, names in HELP_GROUPS for name in names}
+    rest = [f.name for _, _, fields in field_groups(Config) for f in fields if f.name not in shown]
+    return [*HELP_GROUPS, (None, rest)]
+
+
+def build_parser(Config, methods: dict, full=False) -> OneLineParser:
+    """One flag per field of Config and RunConfig. --help shows HELP_GROUPS' flags, --help-all (full=True)
+    every flag by its dataclass; the others parse all the same."""
+    fields = {f.name: (f, defaults) for _, defaults, group in field_groups(Config) for f in group}
+    epilog = f"The flags that matter; all {len(fields)}: python sear.py --help-all. docs/flags.md has both."
+    parser = OneLineParser(prog="sear.py", usage="%(prog)s [--env ENV] [--method METHOD] [--FLAG VALUE ...] | "
+                                                 "--resume RUN_DIR | --evaluate RUN_DIR",
+                           description="SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023).",
+                           epilog=None if full else epilog)
+    parser.add_argument("--help-all", action=HelpAll, full=lambda: build_parser(Config, methods, full=True),
+                        help=f"show all {len(fields)} flags and exit")
+    for title, names in help_sections(Config, full):
+        group = parser.add_argument_group(title) if title else parser
+        for name in names:
+            f, defaults = fields[name]
+            add_flag(group, f, help_text(f, defaults, methods) if title else argparse.SUPPRESS, methods)
     return parser
 
 
@@ -350,8 +471,8 @@ def negative_numbers_as_values(argv: list[str]) -> list[str]:
 
 
 def flag_names(Config) -> set[str]:
-    """Every flag sear.py's parser has: one per field, plus --no-X for booleans."""
-    names = set()
+    """Every flag sear.py's parser has: one per field, plus --no-X for booleans, and --help-all."""
+    names = {"--help-all"}
     for f in (*dataclasses.fields(Config), *dataclasses.fields(RunConfig)):
         names.add(flag(f.name))
         if f.type in ("bool", bool):
@@ -371,6 +492,160 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
     return no_such_flag(flags[0], known) if flags else f"unrecognized arguments: {' '.join(extras)}"
 
 
+# ------------------------------------------------------------------------------------------------
+# Where each setting acts: a flag given where it does nothing is refused (or, for sweep.py, dropped)
+# ------------------------------------------------------------------------------------------------
+# The methods by what they read, named here (plot.py reads config.json without torch); tests check them
+# against sear.METHODS (uses_mask, encoder): a new method that uses the mask or the pooled encoder is added here.
+MASK_METHODS = ("sear", "sear-nosplit", "rgbm", "dear")                   # Method.uses_mask
+POOLED_METHODS = ("sear", "ae", "mae", "curl", "sear-nosplit", "dear")    # Method.encoder == "pooled"
+TASK_SETS = ("mt3", "mt10", "mt50")  # metaworld-<set>; envs.py's _METAWORLD_SETS
+
+
+def suite_of(env: str) -> str:
+    """dmc | distracting | metaworld | task-set | kitchen | adroit: the suite of an env name as envs.py names
+    them, read from the name alone (no MuJoCo; tests check it against envs.py's parser)."""
+    prefix, _, rest = env.partition("-")
+    if env.endswith("-distracting"):
+        return "distracting"
+    if prefix == "metaworld":
+        return "task-set" if rest in TASK_SETS else "metaworld"
+    return prefix if prefix in ("kitchen", "adroit") else "dmc"
+
+
+def listing(names) -> str:
+    """'a, b and c'."""
+    names = list(names)
+    return ", ".join(names[:-1]) + f" and {names[-1]}" if len(names) > 1 else "".join(names)
+
+
+def only_methods(*names, text=None):
+    """An APPLIES row: the setting acts with these --method values."""
+    return lambda c: c.get("method", "sear") in names, text or f"--method {listing(names)}"
+
+
+def only_suites(*suites, text):
+    return lambda c: suite_of(c.get("env", "")) in suites, text
+
+
+def _uses_mask(c) -> bool:
+    return c.get("method", "sear") in MASK_METHODS
+
+
+_MASK = f"methods that use the robot mask (--method {listing(MASK_METHODS)})"
+_DRM = (lambda c: bool(c.get("drm")), "runs with --drm")
+_DISTRACTING = only_suites("distracting", text="Distracting Control (*-distracting envs)")
+
+# Where each setting acts, one row per field: (acts(settings), what it is for). `settings` is a run's
+# config as config.json holds it (a dict: an old run's may lack later fields). A field without a row acts
+# in every run and is listed in EVERYWHERE; tests/test_applies.py fails on a field in neither.
+APPLIES = {
+    "mask_noise": (_uses_mask, _MASK),
+    "mask_approx": (_uses_mask, _MASK),
+    "mask_source": (_uses_mask, _MASK),
+    "learned_mask_iou": (lambda c: _uses_mask(c) and c.get("mask_source", "sim") != "sim",
+                         "--mask-source learned:PATH, with one of the " + _MASK),
+    "mask_downsample": (lambda c: _uses_mask(c) and suite_of(c.get("env", "")) in ("metaworld", "task-set", "kitchen",
+                                                                                   "adroit"),
+                        "the manipulation suites (metaworld-*, kitchen-*, adroit-*; dm_control renders masks at 84), "
+                        "with one of the " + _MASK),
+    "latent_dim": only_methods(*POOLED_METHODS, text=f"SEAR's pooled encoder (--method {listing(POOLED_METHODS)}; "
+                                                     f"drq and rgbm flatten the feature map)"),
+    "recon_coef": only_methods("sear", "sear-nosplit", "ae", "mae", "dear",
+                               text="--method sear, sear-nosplit, ae (2 x c1), mae and dear (c1 of its cosine term)"),
+    "mask_coef": only_methods("sear", "sear-nosplit", "dear"),
+    "ae_latent_lambda": only_methods("ae"),
+    "mae_ratio": only_methods("mae"),
+    "mae_patch": only_methods("mae"),
+    "curl_tau": only_methods("curl"),
+    "curl_lr": only_methods("curl"),
+    "dear_feature": only_methods("dear"),
+    **dict.fromkeys(("drm_dormant_threshold", "drm_target_ratio", "drm_dormant_temp", "drm_lambda", "drm_lambda_temp",
+                     "drm_perturb_every", "drm_min_perturb", "drm_max_perturb", "drm_perturb_rate", "drm_expectile"),
+                    _DRM),
+    **dict.fromkeys(("backgrounds", "difficulty", "camera_distraction", "color_distraction"), _DISTRACTING),
+    "pole_inertia": (lambda c: suite_of(c.get("env", "")) in ("dmc", "distracting")
+                     and c.get("env", "").startswith("cartpole-"),
+                     "cartpole (cartpole-* and cartpole-*-distracting envs)"),
+    "kitchen_camera": only_suites("kitchen", text="Kitchen (kitchen-* envs)"),
+    "eval_episodes_per_task": only_suites("task-set", text="the task sets (metaworld-mt3, -mt10, -mt50)"),
+    "eval_episodes": (lambda c: not (suite_of(c.get("env", "")) == "task-set" and c.get("eval_episodes_per_task")),
+                      "runs other than a task set given --eval-episodes-per-task (which then sets every "
+                      "task's episodes)"),
+    "init_parts": (lambda c: bool(c.get("init_from")), "runs with --init-from"),
+}
+EVERYWHERE = frozenset((
+    "env", "method", "drm", "seed", "frames", "action_repeat", "max_episode_steps", "eval_every", "precision",
+    "frame_stack", "replay_size", "seed_frames", "exploration_steps", "nstep", "batch_size", "discount", "lr",
+    "update_every", "critic_tau", "feature_dim", "hidden_dim", "std_start", "std_end", "std_steps", "std_clip",
+    "render_quality",
+    # RunConfig: how the process runs, whatever the experiment
+    "device", "compile", "tf32", "replay_device", "prefetch", "threads", "run_root", "resume", "evaluate", "recipe",
+    "save_buffer", "save_video", "init_from", "log_every", "snapshot_minutes", "drop_inapplicable"))
+
+
+def acts(name: str, settings: dict) -> bool:
+    """Whether setting `name` acts in a run of these settings (APPLIES; a field without a row always does)."""
+    return name not in APPLIES or bool(APPLIES[name][0](settings))
+
+
+def acting_settings(config: dict) -> dict:
+    """A run's config.json less the settings that did nothing in it: what a plot may name a curve by. Runs
+    from before APPLIES recorded them (--method drq --dear-feature push ran as drq)."""
+    return {name: value for name, value in config.items() if acts(name, config)}
+
+
+def given_as(name: str, value) -> str:
+    """A flag as it was typed: --mask-approx, --no-mask-approx, --recon-coef 1.0."""
+    if isinstance(value, bool):
+        return flag(name) if value else "--no-" + flag(name)[2:]
+    return f"{flag(name)} {value}"
+
+
+def idle_flags(cfg, run: RunConfig, given: dict) -> dict:
+    """{name: what it is for} of the flags given that do nothing in this run (APPLIES)."""
+    settings = {**vars(cfg), **vars(run)}
+    return {name: APPLIES[name][1] for name in given if not acts(name, settings)}
+
+
+def refusal(idle: dict, given: dict, where: str) -> str:
+    """'--x 1 does nothing in this run (drq on walker-walk): it is for ...', of one or several flags."""
+    if len(idle) == 1:
+        (name, text), = idle.items()
+        return f"{given_as(name, given[name])} does nothing in this run ({where}): it is for {text}"
+    return (f"{listing(given_as(name, given[name]) for name in idle)} do nothing in this run ({where}): "
+            + "; ".join(f"{flag(name)} is for {text}" for name, text in idle.items()))
+
+
+def check_applies(cfg, run: RunConfig, given: dict, resumed=False) -> set:
+    """A flag given where it does nothing (APPLIES) is one line, exit 2. With --drop-inapplicable (sweep.py:
+    one set of flags for every method of a grid) it is dropped instead: back to its default, which
+    config.json then records (a resumed run keeps its saved value), in one line for all of them. Returns
+    the names dropped."""
+    idle = idle_flags(cfg, run, given)
+    if not idle:
+        return set()
+    where = f"{method_label(cfg)} on {cfg.env}"
+    if not run.drop_inapplicable:
+        raise ConfigError(refusal(idle, given, where))
+    defaults = {**vars(type(cfg)()), **vars(RunConfig())}
+    for name in () if resumed else idle:
+        setattr(cfg if hasattr(cfg, name) else run, name, defaults[name])
+    warn(f"--drop-inapplicable: ignored what does nothing in this run ({where})"
+         + ("" if resumed else ", config.json records the default") + ": "
+         + "; ".join(f"{given_as(name, given[name])} (for {text})" for name, text in idle.items()))
+    return set(idle)
+
+
+# ------------------------------------------------------------------------------------------------
+# Values: types (the parser), ranges, the rules between fields
+# ------------------------------------------------------------------------------------------------
+# Seeds: numpy's legacy seeding (np.random.seed, dm_control's and Meta-World's RandomState) takes [0, 2^32),
+# and the eval env's seed is the run's + 100000 (experiment.EVAL_SEED). Episodes' reset seeds go to
+# default_rng, which takes any non-negative integer.
+EVAL_SEED = 100_000
+MAX_SEED = 2**32 - 1 - EVAL_SEED
+
 # The range of each numeric flag; the parser checks the types, `choices` the enums.
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
@@ -384,42 +659,87 @@ RANGES = (
                                               "camera_distraction", "color_distraction", "drm_dormant_threshold",
                                               "drm_target_ratio", "drm_lambda", "drm_min_perturb", "drm_max_perturb",
                                               "drm_expectile")),
+    (f"in [0, {MAX_SEED}] (numpy seeds below 2^32, and the eval env's is --seed + {EVAL_SEED})",
+     lambda v: 0 <= v <= MAX_SEED, ("seed",)),
 )
 
 
-def validate(cfg, run: RunConfig, methods: dict) -> None:
-    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields."""
+def _mask_source_ok(source: str) -> bool:
+    return source == "sim" or (source.startswith("learned:") and len(source) > len("learned:"))
+
+
+# The rules between fields: (broken(cfg), what to say).
+RELATIONS = (
+    (lambda cfg: cfg.drm and cfg.drm_perturb_every % cfg.update_every,
+     lambda cfg: f"--drm-perturb-every ({cfg.drm_perturb_every}) must be a multiple of --update-every "
+                 f"({cfg.update_every}): DrM perturbs at the start of an update"),
+    (lambda cfg: cfg.drm_min_perturb > cfg.drm_max_perturb,
+     lambda cfg: f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
+                 f"({cfg.drm_max_perturb})"),
+    (lambda cfg: cfg.latent_dim % 2,
+     lambda cfg: f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}"),
+    (lambda cfg: 84 % cfg.mae_patch, lambda cfg: f"--mae-patch must divide 84, got {cfg.mae_patch}"),
+    (lambda cfg: not _mask_source_ok(cfg.mask_source),
+     lambda cfg: f"--mask-source must be sim or learned:PATH (a segment.py model file), got '{cfg.mask_source}'"),
+)
+
+
+def not_finite(cfg, run) -> str | None:
     for settings in (cfg, run):
         for f in dataclasses.fields(settings):
             value = getattr(settings, f.name)
             if isinstance(value, float) and not math.isfinite(value):  # inf passes every range, NaN none
-                raise ConfigError(f"{flag(f.name)} must be a finite number, got {value}")
+                return f"{flag(f.name)} must be a finite number, got {value}"
+
+
+def out_of_range(cfg, run) -> str | None:
     for rule, holds, names in RANGES:
         for name in names:
             value = getattr(cfg, name) if hasattr(cfg, name) else getattr(run, name)
             if not holds(value):
-                raise ConfigError(f"{flag(name)} must be {rule}, got {value}")
-    if cfg.drm and cfg.drm_perturb_every % cfg.update_every:
-        raise ConfigError(f"--drm-perturb-every ({cfg.drm_perturb_every}) must be a multiple of --update-every "
-                          f"({cfg.update_every}): DrM perturbs at the start of an update")
-    if cfg.drm_min_perturb > cfg.drm_max_perturb:
-        raise ConfigError(f"--drm-min-perturb ({cfg.drm_min_perturb}) must not exceed --drm-max-perturb "
-                          f"({cfg.drm_max_perturb})")
-    if cfg.latent_dim % 2:
-        raise ConfigError(f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}")
-    if 84 % cfg.mae_patch:
-        raise ConfigError(f"--mae-patch must divide 84, got {cfg.mae_patch}")
-    if cfg.mask_source != "sim" and not (cfg.mask_source.startswith("learned:") and cfg.mask_source[8:]):
-        raise ConfigError(f"--mask-source must be sim or learned:PATH (a segment.py model file), got "
-                          f"'{cfg.mask_source}'")
-    if cfg.mask_source != "sim" and not methods[cfg.method].uses_mask:
-        raise ConfigError(f"--mask-source {cfg.mask_source} is for methods that use the robot mask "
-                          f"({', '.join(m for m in methods if methods[m].uses_mask)}), not {cfg.method}")
+                return f"{flag(name)} must be {rule}, got {value}"
+
+
+def unrelated(cfg, run) -> str | None:
+    return next((say(cfg) for broken, say in RELATIONS if broken(cfg)), None)
+
+
+def no_video_writer(cfg, run) -> str | None:
     if run.save_video:
         try:
             import imageio_ffmpeg  # noqa: F401  (brings its own ffmpeg binary)
         except ImportError:
-            raise ConfigError("--save-video needs imageio-ffmpeg: pip install -r requirements.txt") from None
+            return "--save-video needs imageio-ffmpeg: pip install -r requirements.txt"
+
+
+CHECKS = (not_finite, out_of_range, unrelated, no_video_writer)
+
+
+def validate(cfg, run: RunConfig, methods: dict = None) -> None:
+    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields
+    (CHECKS, in order; the first that fails is the one line)."""
+    message = next(filter(None, (check(cfg, run) for check in CHECKS)), None)
+    if message:
+        raise ConfigError(message)
+
+
+def check_env(cfg) -> None:
+    """An unknown --env is one line ("did you mean") before anything else is read of it."""
+    import envs  # late: --help needs no MuJoCo
+    try:
+        envs.default_action_repeat(cfg.env)
+    except envs.EnvError as e:
+        raise ConfigError(str(e)) from None
+
+
+def check_learning_starts(cfg) -> None:
+    """Learning starts once the replay holds the seed frames' steps: a smaller replay never learns."""
+    import envs
+    repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
+    steps = cfg.seed_frames // repeat
+    if cfg.replay_size < steps:
+        raise ConfigError(f"--replay-size {cfg.replay_size} is smaller than the {steps} steps of --seed-frames "
+                          f"{cfg.seed_frames} (action repeat {repeat}): learning would never start")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -632,6 +952,7 @@ def evaluate_config(given: dict, Config, methods: dict) -> tuple:
         raise ConfigError(f"{flag(extra[0])} cannot be given with --evaluate (the run's config holds it); "
                           f"only {may} can")
     cfg, run = split_config({**snapshot["config"], "save_video": False, **given}, Config)
+    check_applies(cfg, run, given, resumed=True)  # --eval-episodes-per-task on a single task
     validate(cfg, run, methods)
     return cfg, run, snapshot
 
@@ -648,30 +969,39 @@ def parse_args(argv, Config, methods: dict) -> tuple:
     if given.get("evaluate"):
         return evaluate_config(given, Config, methods)
     if given.get("resume"):
-        snapshot = load_snapshot(given["resume"])
-        check_run_config(given["resume"])
-        saved = snapshot["config"]
-        for k, v in given.items():
-            if k not in RESUME_MAY_CHANGE and saved.get(k) != v:
-                raise ConfigError(f"{flag(k)} cannot change on --resume "
-                                  f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
-        cfg, run = split_config({**saved, **given}, Config)
-        validate(cfg, run, methods)  # a resumed config was resolved when the run started: no recipe again
-        return cfg, run, snapshot
+        return resume_config(given, Config, methods)
     cfg, run = split_config(given, Config)
     validate(cfg, run, methods)
+    check_env(cfg)
     check_run_root(run.run_root)
     if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
         cfg.mask_source = "learned:" + os.path.abspath(cfg.mask_source[len("learned:"):])
     explicit = set(given)
-    if "init_parts" in given and not run.init_from:
-        raise ConfigError("--init-parts needs --init-from (the run to copy from)")
     if run.init_from:  # the source run fixes the copied networks' sizes; the recipe may not change them
         explicit |= inherit_from_source(cfg, run, explicit, Config)
+    explicit -= check_applies(cfg, run, given)  # after --init-from: the method may be the source run's
     changed = apply_recipe(cfg, run.recipe, explicit)
+    check_learning_starts(cfg)
     if changed:
         print(f"recipe {run.recipe}: " + "; ".join(changed))
     return cfg, run, None
+
+
+def resume_config(given: dict, Config, methods: dict) -> tuple:
+    """--resume RUN_DIR: the run's saved config, with only RESUME_MAY_CHANGE given otherwise, and its
+    snapshot. A resumed config was resolved when the run started: no recipe again."""
+    snapshot = load_snapshot(given["resume"])
+    check_run_config(given["resume"])
+    saved = snapshot["config"]
+    cfg, run = split_config({**saved, **given}, Config)
+    check_applies(cfg, run, given, resumed=True)
+    unsaved = {f.name for f in dataclasses.fields(RunConfig) if not f.metadata["saved"]}
+    for k, v in given.items():
+        if k not in RESUME_MAY_CHANGE | unsaved and saved.get(k) != v:
+            raise ConfigError(f"{flag(k)} cannot change on --resume "
+                              f"(run has {saved.get(k)!r}); only {', '.join(sorted(RESUME_MAY_CHANGE))} can")
+    validate(cfg, run, methods)
+    return cfg, run, snapshot
 
 
 def main(argv, Config, methods: dict, train, evaluate) -> int:
@@ -838,9 +1168,8 @@ def torch_threads(run: RunConfig) -> int:
 
 def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
     """Settings that run, but not as meant: more threads than cores (clamped), Distracting Control without
-    the paper's DAVIS backgrounds, a replay smaller than a batch or than the seed phase (learning starts
-    once the replay holds the seed frames' steps). After the envs are made: the seed phase's steps need
-    the suite's action repeat."""
+    the paper's DAVIS backgrounds, a replay smaller than a batch (one smaller than the seed phase, where
+    learning would never start, is refused: check_learning_starts)."""
     warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
     if threads > cores:
         given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
@@ -853,10 +1182,6 @@ def start_warnings(cfg, run: RunConfig, training=True) -> list[str]:
     if cfg.env.endswith("-distracting") and not cfg.backgrounds:  # a default that is not the paper's: said every run
         warnings.append(f"{cfg.env} runs on the built-in procedural backgrounds, not the paper's DAVIS-2017 videos; "
                         "for the paper's setting: python envs.py --fetch-davis, then --backgrounds davis")
-    seed_steps = cfg.seed_frames // max(1, cfg.action_repeat)
-    if training and cfg.replay_size < seed_steps:
-        warnings.append(f"--replay-size {cfg.replay_size} is smaller than the {seed_steps} steps of --seed-frames "
-                        f"{cfg.seed_frames}: learning never starts")
     return warnings
 
 

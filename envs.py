@@ -66,6 +66,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import argparse
 import atexit
 import collections
+import difflib
 import errno
 import functools
 import hashlib
@@ -255,7 +256,9 @@ def _parse_name(name: str) -> tuple[str, tuple]:
     for domain, task in _dmc_tasks():
         if base == _dmc_name(domain, task) or base == f"{domain}-{task}":
             return ("distracting" if distracting else "dmc"), (domain, task)
-    raise EnvError(f"unknown env {name!r}; valid: {_valid_names_line()}")
+    close = difflib.get_close_matches(name, env_names(), n=1)
+    hint = f"did you mean {close[0]}? " if close else ""
+    raise EnvError(f"unknown env {name!r}; {hint}valid: {_valid_names_line()}")
 
 
 def is_task_set(name: str) -> bool:
@@ -1291,7 +1294,7 @@ class SEAREnv(gym.Env):
 
 def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: int | None = None,
              size: int = 84, mask_noise: float = 0.0, mask_approx: bool = False,
-             backgrounds: str | None = None, difficulty: str = "hard",
+             backgrounds: str | None = None, difficulty: str = "medium",
              render_quality: str = "paper", split: str = "train",
              mask_downsample: str = "majority", camera_distraction: float = 0.0,
              color_distraction: float = 0.0, render_mask: bool = True,
@@ -1305,7 +1308,9 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     "davis" (DAVIS-2017 from ``davis_cache()``: the paper's) or a folder; see
     ``Backgrounds``.  ``split``: "train" (DAVIS train videos) or "eval" (DAVIS
     validation videos).
-    ``difficulty`` picks the number of background videos; the camera/colour
+    ``difficulty`` picks the number of background videos: easy / medium / hard =
+    4 / 8 / all of the split; the default, medium, is the run's (sear.py
+    --difficulty, the authors' distracting.yaml); the camera/colour
     distraction scales are given explicitly (the original suite's values per
     difficulty are 0.1 / 0.2 / 0.3) and default to off, as in the paper.
     ``mask_downsample``: "majority" (default) or "stride" (the authors').

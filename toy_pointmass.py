@@ -594,7 +594,7 @@ def main(argv=None) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     table = markdown_table(cfg, res)
     print(f"SEAR toy point-mass: final distance to goal, mean ± 95% CI over {cfg.seeds} seeds "
-          f"({cfg.eval_episodes} eval episodes each){' [--quick: not meaningful]' if cfg.quick else ''}\n")
+          f"({cfg.eval_episodes} eval episode{'s' * (cfg.eval_episodes != 1)} each){' [--quick: not meaningful]' if cfg.quick else ''}\n")
     print(table)
     rows = [(name, r) for name, sr, se in regimes(cfg) for r in res[(sr, se)]]
     try:

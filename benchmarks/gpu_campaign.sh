@@ -187,7 +187,8 @@ rung=(--env cartpole-balance_sparse --frames "$frames" --action-repeat 2 --frame
       --replay-size 1000000 --eval-every "$eval_every" --eval-episodes 10 --precision fp32
       --render-quality "$quality" --threads "$threads" --device "$device")
 [ $quick = 1 ] && rung+=(--seed-frames 80 --exploration-steps 40 --max-episode-steps 25 --batch-size 8
-                         --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2)
+                         --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2
+                         --drop-inapplicable)  # one set for drq and sear: drq has no --latent-dim
 # a group's rings: every step of F frames at action repeat 2, and a reset slot per episode (1000 steps a most)
 [ $group = 1 ] && [ $quick = 0 ] && rung+=(--replay-size $(( frames / 2 + frames / 500 + 100 )))
 

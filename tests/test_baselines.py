@@ -9,7 +9,7 @@ import torch
 import sear
 import baselines
 import train
-from tests.test_cli import TINY, only_run_dir, run
+from tests.test_cli import only_run_dir, run, tiny
 
 def tiny_cfg(method, **kw):
     return train.Config(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=8,
@@ -115,7 +115,7 @@ def test_decoder_inputs_split_or_not(method, split, device):
 @pytest.mark.parametrize("method", [m for m in sear.METHODS if m != "sear"])  # sear: test_cli.py
 def test_cli_smoke_run_per_method(method, tmp_path):
     extra = ["--mask-noise", "0.2"] if method in ("rgbm", "sear-nosplit") else []  # noise combines with mask users
-    r = run(["--env", "walker-walk", "--method", method, *TINY, "--frames", "32", "--eval-every", "100", *extra],
+    r = run(["--env", "walker-walk", "--method", method, *tiny(method), "--frames", "32", "--eval-every", "100", *extra],
             tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     run_dir = only_run_dir(tmp_path)

@@ -1,5 +1,6 @@
 """sear.py end to end on CPU with tiny budgets: outputs, snapshots, --resume, bad input."""
 import csv
+import dataclasses
 import hashlib
 import io
 import json
@@ -21,23 +22,61 @@ TINY = ["--frames", "48", "--seed-frames", "12", "--batch-size", "4", "--eval-ev
         "--latent-dim", "64", "--hidden-dim", "32", "--render-quality", "fast"]
 
 
+def tiny(method="sear"):
+    """TINY for `method`: --latent-dim only where it acts (SEAR's pooled encoder; drq and rgbm flatten)."""
+    import cli
+    if method in cli.POOLED_METHODS:
+        return list(TINY)
+    i = TINY.index("--latent-dim")
+    return TINY[:i] + TINY[i + 2:]
+
+
 def run(args, tmp_path, timeout=600):
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     return subprocess.run([sys.executable, str(ROOT / "sear.py"), "--run-root", str(tmp_path / "runs"), *args],
                           capture_output=True, text=True, timeout=timeout, cwd=tmp_path, env=env)
 
 
-def test_help_shows_every_flag_in_its_group(tmp_path):
-    """--help lists every flag, the experiment's settings by the dataclass that holds them."""
+def test_help_all_shows_every_flag_in_its_group(tmp_path):
+    """--help-all lists every flag, the experiment's settings by the dataclass that holds them."""
     import cli
-    import sear
     import train
-    r = run(["--help"], tmp_path)
+    r = run(["--help-all"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     assert all(name in r.stdout for name in cli.flag_names(train.Config))
     groups = [line for line in r.stdout.splitlines() if line.startswith("the ")]
-    assert groups == ["the experiment (sear.py Config):", "the experiment (experiment.py EnvConfig):",
-                      "the experiment (drm.py DrMConfig):", "the run (cli.py RunConfig):"]
+    assert groups == ["the experiment (train.py Config):", "the experiment (sear.py Config):",
+                      "the experiment (baselines.py BaselineConfig):", "the experiment (drm.py DrMConfig):",
+                      "the experiment (experiment.py EnvConfig):", "the run (cli.py RunConfig):"]
+
+
+def help_flags(text: str) -> list[str]:
+    """The flags a help text documents, in order: each entry's first --flag."""
+    return [m[1] for m in re.finditer(r"^  (--[a-z0-9-]+)", text, re.M) if m[1] not in ("--help", "--help-all")]
+
+
+def test_help_shows_the_flags_that_matter_in_named_groups_and_help_all_the_rest(tmp_path):
+    """--help: docs/flags.md's flags (cli.HELP_GROUPS), under their group titles, with where each acts;
+    --help-all: every flag. Both parse every flag."""
+    import cli
+    import train
+    r = run(["--help"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    wanted = [cli.flag(name) for _, names in cli.HELP_GROUPS for name in names]
+    assert help_flags(r.stdout) == wanted
+    assert [title for title, _ in cli.HELP_GROUPS] == [line[:-1] for line in r.stdout.splitlines()
+                                                       if line.endswith(":") and not line.startswith(" ")
+                                                       and line != "options:"]
+    assert "only for --method dear" in " ".join(r.stdout.split())  # --dear-feature: APPLIES says where it acts
+    every = {f.name for f in (*dataclasses.fields(train.Config), *dataclasses.fields(cli.RunConfig))}
+    assert f"all {len(every)}: python sear.py --help-all" in " ".join(r.stdout.split())
+    full = run(["--help-all"], tmp_path)
+    assert sorted(help_flags(full.stdout)) == sorted(cli.flag(name) for name in every)
+    # docs/flags.md lists the same flags as --help, and says how to see the others
+    doc = (ROOT / "docs" / "flags.md").read_text()
+    table = [m for line in doc.split("\n## ")[0].splitlines() if line.startswith("| `--")
+             for m in re.findall(r"`(--[a-z0-9-]+)", line.split("|")[1])]
+    assert sorted(set(table)) == sorted(wanted) and "--help-all" in doc
 
 
 def _sigint_default():
@@ -133,7 +172,8 @@ def test_smoke_run_writes_csvs_and_snapshot_then_resume_continues(tmp_path):
     (["--env", "walker-walk-distracting", "--backgrounds", "does/not/exist"], "does not exist"),
     (["--mask-downsample", "every-other"], "argument --mask-downsample: invalid choice: 'every-other'"),
     (["--snapshot-minutes", "-1"], "--snapshot-minutes must be >= 0"),
-    (["--env", "walker-walk", "--pole-inertia", "2021"], "the 2021 pole inertia only applies to cartpole-* envs"),
+    (["--env", "walker-walk", "--pole-inertia", "2021"], "--pole-inertia 2021 does nothing in this run (sear on "
+                                                         "walker-walk): it is for cartpole (cartpole-* and"),
     # Each of these used to start a run (TINY: a short one): inf passes every range, and a run that
     # cannot learn or ends in a PhysicsError traceback is worse than a refusal.
     ([*TINY, "--recon-coef", "inf"], "--recon-coef must be a finite number, got inf"),
@@ -210,7 +250,7 @@ def test_interrupt_between_episodes_writes_a_snapshot(tmp_path):
     """Ctrl-C while the loop sits between episodes (here: while the first snapshot is being
     written) saves that exact state; a deterministic stand-in for a well-timed SIGINT."""
     driver = (
-        "import sys, experiment, sear, train\n"
+        "import sys, experiment, train\n"
         "real, calls = experiment.save_snapshot, []\n"
         "def ctrl_c_once(run_dir, payload):\n"
         "    calls.append(payload['counters']['step'])\n"
@@ -263,7 +303,7 @@ def test_help_shows_per_task_defaults_as_such():
     import cli
     import sear
     import train
-    text = " ".join(cli.build_parser(train.Config, sear.METHODS).format_help().split())
+    text = " ".join(cli.build_parser(train.Config, sear.METHODS, full=True).format_help().split())
     assert "(default: 4096; per task: 512 on the task sets (metaworld-mt3, -mt10, -mt50))" in text
     assert ("(default: 500000; per task: 2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 "
             "(easy), 500000") in text
@@ -359,7 +399,8 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     monkeypatch.setattr(sear.TruncatedNormal, "sample", lambda self, clip=None: (
         torch.full_like(self.loc, 0.125) if clip is None else sample(self, clip)))
     cfg, run, _ = cli.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat",
-                                  str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1", *TINY,
+                                  str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1",
+                                  *tiny("drq"),
                                   "--seed-frames", "12", "--exploration-steps", "6"],
                                  train.Config, sear.METHODS)
     train.train(cfg, run)
@@ -387,8 +428,8 @@ def test_resume_from_a_snapshot_before_its_frames_evaluation_evaluates_once(tmp_
     evaluation's row was written, the resumed run evaluates that frame again: the old row goes to the
     side file, so eval.csv has every frame once."""
     import torch
-    tiny = [*TINY, "--eval-every", "16"]  # evaluations at the episode ends (8 steps x action repeat 2)
-    r = run(["--env", "walker-walk", "--method", "drq", *tiny], tmp_path)
+    r = run(["--env", "walker-walk", "--method", "drq", *tiny("drq"), "--eval-every", "16"], tmp_path)  # evaluations
+    # at the episode ends (8 steps x action repeat 2)
     assert r.returncode == 0, r.stderr[-2000:]
     run_dir = only_run_dir(tmp_path)
     assert [int(x["frame"]) for x in rows(run_dir / "eval.csv")] == [0, 16, 32, 48]
@@ -445,3 +486,92 @@ print(configured, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
         configured, faults[setting] = r.stdout.split()
         assert configured == {"on": "True", "off": "None"}[setting]
     assert int(faults["on"]) < 100 and int(faults["off"]) > 10_000, faults
+
+
+# ---------------------------------------------------------------- what a newcomer types
+def never_train(*args):
+    raise AssertionError("sear.py accepted the flags and started training")
+
+
+def main_in_process(argv, capsys, tmp_path, monkeypatch):
+    """sear.py's exit code and stderr, in this process, for inputs it refuses before training."""
+    import train
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(train, "train", never_train)
+    code = train.main(argv)
+    return code, capsys.readouterr().err
+
+
+def test_every_seed_a_user_can_type_is_one_line_or_works(tmp_path, capsys, monkeypatch):
+    """numpy's legacy seeds (np.random.seed, dm_control's and Meta-World's RandomState) are below 2^32 and the
+    eval env's seed is --seed + 100000: outside [0, 2^32 - 1 - 100000] a seed is one line, inside it trains."""
+    import cli
+    import experiment
+    assert cli.MAX_SEED + experiment.EVAL_SEED == 2**32 - 1
+    for seed in ("-1", "4294967296", str(cli.MAX_SEED + 1), "1" + "0" * 30):
+        code, err = main_in_process(["--seed", seed], capsys, tmp_path, monkeypatch)
+        assert code == 2 and err == f"sear.py: error: --seed must be in [0, {cli.MAX_SEED}] (numpy seeds below 2^32, " \
+                                    f"and the eval env's is --seed + 100000), got {int(seed)}\n", err
+    assert not (tmp_path / "runs").exists()
+    r = run(["--env", "cup-catch", *TINY, "--frames", "16", "--eval-every", "100", "--seed", str(cli.MAX_SEED)],
+            tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+def test_an_unknown_env_gets_the_nearest_name_before_anything_starts(tmp_path, capsys, monkeypatch):
+    import envs
+    code, err = main_in_process(["--env", "walkr-walk"], capsys, tmp_path, monkeypatch)
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith("sear.py: error: unknown env 'walkr-walk'; did you mean walker-walk? valid: walker-walk, ")
+    assert envs.main(["--list", "--envs", "cheetah-rn"]) == 2
+    assert "unknown env 'cheetah-rn'; did you mean cheetah-run? valid: " in capsys.readouterr().err
+
+
+def test_int_flags_take_whole_numbers_written_as_floats(tmp_path, capsys, monkeypatch):
+    import cli
+    import sear
+    import train
+    monkeypatch.chdir(tmp_path)
+    cfg, _, _ = cli.parse_args(["--frames", "1e6", "--replay-size", "2.5e5", "--seed", "1E3"], train.Config,
+                               sear.METHODS)
+    assert (cfg.frames, cfg.replay_size, cfg.seed) == (1_000_000, 250_000, 1000)
+    assert all(type(v) is int for v in (cfg.frames, cfg.replay_size, cfg.seed))
+    for value, message in (("1.5", "argument --frames: invalid int value: '1.5' is not a whole number"),
+                           ("2.5e0", "argument --frames: invalid int value: '2.5e0' is not a whole number"),
+                           ("inf", "argument --frames: invalid int value: 'inf' is not a whole number"),
+                           ("ten", "argument --frames: invalid int value: 'ten'")):
+        code, err = main_in_process(["--frames", value], capsys, tmp_path, monkeypatch)
+        assert code == 2 and err == f"sear.py: error: {message}\n", err
+
+
+def test_a_replay_smaller_than_the_seed_phase_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
+    """Learning starts once the replay holds the seed frames' steps: a smaller replay would run to the end
+    without one update."""
+    code, err = main_in_process(["--replay-size", "10"], capsys, tmp_path, monkeypatch)
+    assert code == 2 and err == ("sear.py: error: --replay-size 10 is smaller than the 2000 steps of --seed-frames "
+                                 "4000 (action repeat 2): learning would never start\n"), err
+    code, err = main_in_process(["--env", "kitchen-kettle", "--replay-size", "3999"], capsys, tmp_path, monkeypatch)
+    assert code == 2 and "than the 4000 steps of --seed-frames 4000 (action repeat 1)" in err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_one_episode_is_said_in_the_singular(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "toy_pointmass.py"), "--quick", "--eval-episodes", "1",
+                        "--train-episodes", "20", "--out", str(tmp_path / "toy")], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "(1 eval episode each)" in r.stdout and "episodes" not in r.stdout.splitlines()[0]
+
+
+def test_make_env_defaults_are_the_runs():
+    """envs.make_env called without a setting builds what sear.py builds by default (Distracting Control:
+    medium, 8 backgrounds, not all of them)."""
+    import inspect
+
+    import envs
+    import experiment
+    params = inspect.signature(envs.make_env).parameters
+    run = experiment.EnvConfig()
+    shared = [name for name in params if hasattr(run, name) and name != "backgrounds"]  # None there, '' here
+    assert "difficulty" in shared and len(shared) >= 8
+    assert {name: params[name].default for name in shared} == {name: getattr(run, name) for name in shared}

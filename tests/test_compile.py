@@ -7,7 +7,7 @@ import torch
 
 import cli
 import train
-from tests.test_cli import TINY, only_run_dir, rows, run
+from tests.test_cli import only_run_dir, rows, run, tiny
 from tests.test_sear import fake_batch, small_cfg
 
 needs_compiler = pytest.mark.skipif(cli.cxx_compiler() is None, reason="inductor's CPU kernels need a C++ compiler")
@@ -71,7 +71,7 @@ def test_compiled_update_equals_eager(device, method, drm):
 def test_compiled_run_resumes_exactly(tmp_path):
     """With --compile, 48 frames + --resume to 80 equal 80 frames in one go, as the eager run does
     (tests/test_cli.py): the compiled update is deterministic and draws from the snapshot's RNG state."""
-    common = ["--env", "walker-walk", "--method", "drq", "--seed", "5", "--save-buffer", "--compile", *TINY]
+    common = ["--env", "walker-walk", "--method", "drq", "--seed", "5", "--save-buffer", "--compile", *tiny("drq")]
     straight, split = tmp_path / "straight", tmp_path / "split"
     for d in (straight, split):
         d.mkdir()

@@ -19,7 +19,7 @@ import cli
 import drm
 import sear
 import train
-from tests.test_cli import TINY, rows, run, straight_and_resumed
+from tests.test_cli import rows, run, straight_and_resumed, tiny
 
 REFERENCE = os.environ.get("SEAR_DRM_REFERENCE", "")
 RELEASED_COMMIT = "317116a"  # the commit docs/drm.md describes
@@ -241,7 +241,7 @@ def test_bad_drm_flags_are_one_line(tmp_path, argv, message):
 
 
 # ---------------------------------------------------------------- sear.py end to end
-DRM_TINY = [*TINY, "--method", "drq", "--drm", "--drm-perturb-every", "8", "--exploration-steps", "4",
+DRM_TINY = [*tiny("drq"), "--method", "drq", "--drm", "--drm-perturb-every", "8", "--exploration-steps", "4",
             "--drm-target-ratio", "0.5", "--feature-dim", "8", "--threads", "1"]
 
 

@@ -12,7 +12,7 @@ import experiment
 import plot
 import sear
 import train
-from tests.test_cli import ROOT, TINY, rows, run, tree_digest
+from tests.test_cli import ROOT, TINY, rows, run, tiny, tree_digest
 
 # Two evaluations (frame 0 and the end of the budget), each 2 episodes of 8 agent steps.
 RUN = [*TINY, "--env", "walker-walk", "--frames", "16", "--seed-frames", "8", "--eval-every", "100",
@@ -25,7 +25,7 @@ def tiny_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("inspect")
     dirs = {}
     for method, extra in (("sear", ["--save-video"]), ("drq", [])):
-        r = run([*RUN, "--method", method, *extra], tmp)
+        r = run([*tiny(method), *RUN[len(TINY):], "--method", method, *extra], tmp)
         assert r.returncode == 0, r.stderr[-2000:]
         (dirs[method],) = (tmp / "runs").glob(f"walker-walk__{method}__*")
     return dirs

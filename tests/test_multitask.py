@@ -278,9 +278,11 @@ def test_init_from_a_run_without_snapshot(tmp_path, capsys, holds, says):
 @pytest.mark.parametrize("args, message", [
     (["--kitchen-camera", "sideways"], "argument --kitchen-camera: invalid choice: 'sideways'"),
     (["--eval-episodes-per-task", "-1"], "--eval-episodes-per-task must be >= 0, got -1"),
-    (["--init-parts", "all"], "--init-parts needs --init-from"),
+    (["--init-parts", "all"], "--init-parts all does nothing in this run (sear on walker-walk): it is for runs with "
+                               "--init-from"),
     (["--init-from", "x", "--init-parts", "decoders"], "argument --init-parts: invalid choice: 'decoders'"),
-    (["--env", "walker-walk", "--kitchen-camera", "random"], "a random kitchen camera only applies to kitchen-*"),
+    (["--env", "walker-walk", "--kitchen-camera", "random"], "--kitchen-camera random does nothing in this run (sear on "
+                                                          "walker-walk): it is for Kitchen (kitchen-* envs)"),
 ])
 def test_bad_multitask_flags_are_one_line(tmp_path, capsys, args, message):
     code = train.main(["--run-root", str(tmp_path / "runs"), *TINY, *args])
