@@ -225,7 +225,8 @@ RECIPES = {"authors": (
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
     # The paper's multi-task latent is 512 (TASK_DEFAULTS below); the authors' code keeps 4096 there too.
-    ("latent_dim", _multitask, 4096, "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
+    ("latent_dim", lambda cfg: _multitask(cfg) and cfg.method != "ef", 4096,
+     "sear/cfgs/agent/sear.yaml: latent_dim 4096 (no task cfg overrides it)"),
 )}
 
 
@@ -286,6 +287,7 @@ TASK_DEFAULTS = (
     ("recon_coef", _dear, 1.0, "DEAR's dear/cfgs/agent/dear.yaml: reconstruction_loss_coeff (its cosine term)"),
     ("mask_coef", _dear, 0.25, "DEAR's dear/cfgs/agent/dear.yaml: mask_loss_coeff"),
     ("latent_dim", _multitask, 512, "paper, hyper-parameter table, multi-task"),
+    ("latent_dim", lambda cfg: cfg.method == "ef", 2048, "efrl cfgs/agent/drqv2ef.yaml: hs_dim (docs/foresight.md)"),
     ("std_steps", _multitask, 2_000_000, "paper, hyper-parameter table, multi-task; the authors' "
                                          "multi-task task cfgs: stddev_schedule linear(1.0,0.1,2000000)"),
     ("std_steps", lambda cfg: _drqv2_std_steps(cfg) is not None, _drqv2_std_steps,
@@ -296,7 +298,7 @@ TASK_DEFAULTS = (
 # What --help says of the rows above: a field's default there is the value where no row applies.
 _DRM_ON = "with --drm on DrM's tasks (cli.DRM_TASKS, docs/drm.md)"
 TASK_DEFAULTS_HELP = {
-    "latent_dim": "512 on the task sets (metaworld-mt3, -mt10, -mt50)",
+    "latent_dim": "512 on the task sets (metaworld-mt3, -mt10, -mt50); 2048 with --method ef",
     "std_steps": "2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 (easy), 500000 (medium, and "
                  f"every task not in its table), 2000000 (hard: humanoid); 2000000 {_DRM_ON}: DrM's hard tasks",
     "recon_coef": "1.0 with --method dear", "mask_coef": "0.25 with --method dear",
@@ -498,7 +500,7 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
 # The methods by what they read, named here (plot.py reads config.json without torch); tests check them
 # against sear.METHODS (uses_mask, encoder): a new method that uses the mask or the pooled encoder is added here.
 MASK_METHODS = ("sear", "sear-nosplit", "rgbm", "dear")                   # Method.uses_mask
-POOLED_METHODS = ("sear", "ae", "mae", "curl", "sear-nosplit", "dear")    # Method.encoder == "pooled"
+POOLED_METHODS = ("sear", "ae", "mae", "curl", "sear-nosplit", "dear", "ef")  # Method.encoder == "pooled"
 TASK_SETS = ("mt3", "mt10", "mt50")  # metaworld-<set>; envs.py's _METAWORLD_SETS
 
 
@@ -560,6 +562,7 @@ APPLIES = {
     "curl_tau": only_methods("curl"),
     "curl_lr": only_methods("curl"),
     "dear_feature": only_methods("dear"),
+    **dict.fromkeys(("ef_agent_dim", "ef_horizon", "ef_coef", "ef_babbling_steps"), only_methods("ef")),
     **dict.fromkeys(("drm_dormant_threshold", "drm_target_ratio", "drm_dormant_temp", "drm_lambda", "drm_lambda_temp",
                      "drm_perturb_every", "drm_min_perturb", "drm_max_perturb", "drm_perturb_rate", "drm_expectile"),
                     _DRM),
@@ -650,11 +653,11 @@ MAX_SEED = 2**32 - 1 - EVAL_SEED
 RANGES = (
     ("> 0", lambda v: v > 0, ("frames", "frame_stack", "replay_size", "nstep", "batch_size", "update_every",
                               "eval_episodes", "feature_dim", "latent_dim", "hidden_dim", "std_steps",
-                              "eval_every", "mae_patch", "drm_perturb_every", "lr")),
+                              "eval_every", "mae_patch", "drm_perturb_every", "lr", "ef_agent_dim", "ef_horizon")),
     (">= 0", lambda v: v >= 0, ("action_repeat", "max_episode_steps", "seed_frames", "exploration_steps",
                                 "recon_coef", "mask_coef", "ae_latent_lambda", "curl_lr", "std_end", "std_clip",
                                 "eval_episodes_per_task", "snapshot_minutes", "threads", "drm_dormant_temp",
-                                "drm_lambda_temp", "drm_perturb_rate")),
+                                "drm_lambda_temp", "drm_perturb_rate", "ef_coef", "ef_babbling_steps")),
     ("in [0, 1]", lambda v: 0.0 <= v <= 1.0, ("discount", "critic_tau", "curl_tau", "mask_noise", "mae_ratio",
                                               "camera_distraction", "color_distraction", "drm_dormant_threshold",
                                               "drm_target_ratio", "drm_lambda", "drm_min_perturb", "drm_max_perturb",
@@ -670,6 +673,9 @@ def _mask_source_ok(source: str) -> bool:
 
 # The rules between fields: (broken(cfg), what to say).
 RELATIONS = (
+    (lambda cfg: cfg.method == "ef" and cfg.ef_agent_dim >= cfg.latent_dim,
+     lambda cfg: f"--ef-agent-dim ({cfg.ef_agent_dim}) must be below --latent-dim ({cfg.latent_dim}): the rest of "
+                 f"the latent is EF's scene part"),
     (lambda cfg: cfg.drm and cfg.drm_perturb_every % cfg.update_every,
      lambda cfg: f"--drm-perturb-every ({cfg.drm_perturb_every}) must be a multiple of --update-every "
                  f"({cfg.update_every}): DrM perturbs at the start of an update"),
@@ -1056,6 +1062,7 @@ class TermSignal:
         self.defer, self.pending = False, False
         self.received = 0  # SIGTERMs the watcher heard: the handler sees two that came during one call as one
         self.stands = None  # () -> what a forced stop leaves, e.g. "the last snapshot (frame N) stands; ..."
+        self.waits_for = None  # () -> what a first SIGTERM waits for, e.g. "the next episode end (...)"
 
     @contextlib.contextmanager
     def installed(self):
@@ -1102,9 +1109,11 @@ class TermSignal:
     def handle(self, signum, frame):
         if self.defer and not self.pending and self.received <= 1:
             self.pending = True
+            waits = "the next safe point (an episode end, with a snapshot)"
+            with contextlib.suppress(Exception):  # the line must not fail
+                waits = self.waits_for() if self.waits_for else waits
             # os.write: print() here could re-enter a write the signal interrupted
-            os.write(2, b"\nsear.py: SIGTERM: stopping at the next safe point (an episode end, with a snapshot); "
-                        b"another SIGTERM stops at once\n")
+            os.write(2, f"\nsear.py: SIGTERM: stopping at {waits}; another SIGTERM stops at once\n".encode())
             return
         raise Terminated
 

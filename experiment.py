@@ -121,7 +121,7 @@ def other_robot_warning(cfg, meta: dict) -> str | None:
 
 
 # the eval env's seed and its episodes' reset seeds are the run's seed + this: apart from training's
-EVAL_SEED = 100_000
+EVAL_SEED = cli.EVAL_SEED
 
 
 def make_envs(cfg, uses_mask: bool, train=True):
@@ -446,7 +446,7 @@ def rate_ci(values) -> str:
     from scipy import stats
     n, k = len(values), int(round(sum(values)))
     ci = stats.binomtest(k, n).proportion_ci(0.95, method="wilson")
-    return f"{k / n:.2f} (95% CI {ci.low:.2f} to {ci.high:.2f}, {n} episodes)"
+    return f"{k / n:.2f} (95% CI {ci.low:.2f} to {ci.high:.2f}, {cli.plural(n, 'episode')})"
 
 
 # ================================================================================================
@@ -1256,7 +1256,7 @@ class Console:
     def start_eval(self, frame, episodes: int, untrained: str):
         self.evaluating, self.eval_episodes, self.eval_episode, self.eval_step = True, episodes, 0, 0
         self.eval_began = self.episode_began = time.time()
-        self.progress.say(f"evaluating at frame {frame} ({episodes} episodes)"
+        self.progress.say(f"evaluating at frame {frame} ({cli.plural(episodes, 'episode')})"
                           + (f": {untrained}, before any update" if untrained else ""))
 
     def show_eval(self, frame, episode, t, untrained: str, next_eval):

@@ -228,11 +228,11 @@ def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
     (std_steps, a recipe's per-task rows) does not count. A key only some runs record came with a
     later sear.py: only the runs that record it can differ in it."""
     by_env = {}
-    for r in runs:
-        by_env.setdefault(env_of(r), []).append(r["config"])
+    for r in runs:  # only the settings that acted in the run (cli.APPLIES): a drq run's --dear-feature did not
+        by_env.setdefault(env_of(r), []).append(cli.acting_settings(r["config"]))
     # config_label() names drm with the method
     named = set(keys) | ({"drm"} if "method" in keys else set())
-    names = sorted({k for r in runs for k in r["config"]} - NOT_A_SETTING - named - {"env"})
+    names = sorted({k for configs in by_env.values() for c in configs for k in c} - NOT_A_SETTING - named - {"env"})
     return [k for k in names if any(len({json.dumps(c[k], sort_keys=True) for c in configs if k in c}) > 1
                                     for configs in by_env.values())]
 
@@ -245,8 +245,9 @@ def split_by_config(label: str, group: list[dict], differ: list[str]) -> dict[st
         return {label: group}
     lines = {}
     for run in group:
-        values = " ".join(f"{k}={run['config'].get(k, 'unset')}" for k in differ)
-        lines.setdefault(f"{label} {values}", []).append(run)
+        acting = cli.acting_settings(run["config"])
+        values = " ".join(f"{k}={acting[k]}" for k in differ if k in acting)
+        lines.setdefault(f"{label} {values}".rstrip(), []).append(run)
     return dict(sorted(lines.items()))
 
 
