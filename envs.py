@@ -1292,6 +1292,35 @@ class SEAREnv(gym.Env):
         self.backend.close()
 
 
+def _check_arguments(name, suite, args, *, difficulty, render_quality, split, mask_downsample, mask_noise,
+                     frame_stack, size, action_repeat, backgrounds, kitchen_camera, pole_inertia) -> None:
+    """make_env's arguments: an EnvError (one line) for the first that is wrong for this env."""
+    if difficulty not in _DIFFICULTY_NUM_VIDEOS:
+        raise EnvError(f"difficulty must be one of easy, medium, hard; got {difficulty!r}")
+    if render_quality not in ("paper", "fast"):
+        raise EnvError(f"render_quality must be 'paper' or 'fast'; got {render_quality!r}")
+    if split not in ("train", "eval"):
+        raise EnvError(f"split must be 'train' or 'eval'; got {split!r}")
+    if mask_downsample not in ("majority", "stride"):
+        raise EnvError(f"mask_downsample must be 'majority' or 'stride'; got {mask_downsample!r}")
+    if not 0.0 <= mask_noise <= 1.0:
+        raise EnvError(f"mask_noise must be in [0, 1]; got {mask_noise}")
+    if frame_stack < 1 or size < 1:
+        raise EnvError(f"frame_stack and size must be positive; got {frame_stack}, {size}")
+    if action_repeat < 1:
+        raise EnvError(f"action_repeat must be >= 1; got {action_repeat}")
+    if backgrounds is not None and suite != "distracting":
+        raise EnvError(f"backgrounds only apply to *-distracting envs, not {name!r}")
+    if kitchen_camera not in ("fixed", "random"):
+        raise EnvError(f"kitchen_camera must be 'fixed' or 'random'; got {kitchen_camera!r}")
+    if kitchen_camera == "random" and suite != "kitchen":
+        raise EnvError(f"a random kitchen camera only applies to kitchen-* envs, not {name!r}")
+    if pole_inertia not in ("exact", "2021"):
+        raise EnvError(f"pole_inertia must be 'exact' or '2021'; got {pole_inertia!r}")
+    if pole_inertia == "2021" and not (suite in ("dmc", "distracting") and args[0] == "cartpole"):
+        raise EnvError(f"the 2021 pole inertia only applies to cartpole-* envs, not {name!r}")
+
+
 def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: int | None = None,
              size: int = 84, mask_noise: float = 0.0, mask_approx: bool = False,
              backgrounds: str | None = None, difficulty: str = "medium",
@@ -1324,38 +1353,15 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     benchmark (MT10, MT50 for those sets) whose 50 variations per task the
     resets sample from: give the train and the eval env the same value so both
     see the same placements.
-    ``kitchen_camera`` (Kitchen only): "fixed" (the authors' default view) or
-    "random" (one of their six views per episode, drawn from the reset seed).
-    ``pole_inertia`` (cartpole only): "exact" (MuJoCo 3's capsule) or "2021"
-    (MuJoCo 2.0's, as under DrQ-v2's published curves: mujoco2_pole_inertia).
+    ``kitchen_camera`` (Kitchen only): "fixed" (the authors' view) or "random" (one of their six per episode).
+    ``pole_inertia`` (cartpole only): "exact" (MuJoCo 3's) or "2021" (MuJoCo 2.0's: mujoco2_pole_inertia).
     """
     suite, args = _parse_name(name)
-    if difficulty not in _DIFFICULTY_NUM_VIDEOS:
-        raise EnvError(f"difficulty must be one of easy, medium, hard; got {difficulty!r}")
-    if render_quality not in ("paper", "fast"):
-        raise EnvError(f"render_quality must be 'paper' or 'fast'; got {render_quality!r}")
-    if split not in ("train", "eval"):
-        raise EnvError(f"split must be 'train' or 'eval'; got {split!r}")
-    if mask_downsample not in ("majority", "stride"):
-        raise EnvError(f"mask_downsample must be 'majority' or 'stride'; got {mask_downsample!r}")
-    if not 0.0 <= mask_noise <= 1.0:
-        raise EnvError(f"mask_noise must be in [0, 1]; got {mask_noise}")
-    if frame_stack < 1 or size < 1:
-        raise EnvError(f"frame_stack and size must be positive; got {frame_stack}, {size}")
-    if action_repeat is None:
-        action_repeat = default_action_repeat(name)
-    if action_repeat < 1:
-        raise EnvError(f"action_repeat must be >= 1; got {action_repeat}")
-    if backgrounds is not None and suite != "distracting":
-        raise EnvError(f"backgrounds only apply to *-distracting envs, not {name!r}")
-    if kitchen_camera not in ("fixed", "random"):
-        raise EnvError(f"kitchen_camera must be 'fixed' or 'random'; got {kitchen_camera!r}")
-    if kitchen_camera == "random" and suite != "kitchen":
-        raise EnvError(f"a random kitchen camera only applies to kitchen-* envs, not {name!r}")
-    if pole_inertia not in ("exact", "2021"):
-        raise EnvError(f"pole_inertia must be 'exact' or '2021'; got {pole_inertia!r}")
-    if pole_inertia == "2021" and not (suite in ("dmc", "distracting") and args[0] == "cartpole"):
-        raise EnvError(f"the 2021 pole inertia only applies to cartpole-* envs, not {name!r}")
+    action_repeat = default_action_repeat(name) if action_repeat is None else action_repeat
+    _check_arguments(name, suite, args, difficulty=difficulty, render_quality=render_quality, split=split,
+                     mask_downsample=mask_downsample, mask_noise=mask_noise, frame_stack=frame_stack, size=size,
+                     action_repeat=action_repeat, backgrounds=backgrounds, kitchen_camera=kitchen_camera,
+                     pole_inertia=pole_inertia)
 
     distractions_kwargs = None
     if suite == "distracting":
@@ -1366,8 +1372,7 @@ def make_env(name: str, *, seed: int = 0, frame_stack: int = 3, action_repeat: i
     if suite in ("dmc", "distracting"):
         backend = _DMCBackend(*args, seed=seed, pole_inertia=pole_inertia)
     elif suite == "metaworld":
-        backend = _MetaWorldBackend(*args, variation_seed=seed if variation_seed is None
-                                    else variation_seed)
+        backend = _MetaWorldBackend(*args, variation_seed=seed if variation_seed is None else variation_seed)
     else:
         backend = _GymBackend(suite, *args, seed=seed, kitchen_camera=kitchen_camera)
     return SEAREnv(backend, name=name, seed=seed, frame_stack=frame_stack,

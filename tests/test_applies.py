@@ -213,7 +213,8 @@ def one_thread():
 
 @pytest.mark.parametrize("method", list(sear.METHODS))
 def test_a_setting_changes_the_update_exactly_where_the_table_says_it_acts(method, one_thread):
-    tiny = dict(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=4, action_repeat=2)
+    tiny = dict(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=4, action_repeat=2,
+                **({"ef_agent_dim": 8} if method == "ef" else {}))  # EF's agent part below any latent tried
     for drm in (False, True) if method == "drq" else (False,):
         base = weights_after_updates(train.Config(**tiny, drm=drm))
         for name, value in CHANGED.items():
