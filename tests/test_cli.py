@@ -46,7 +46,8 @@ def test_help_all_shows_every_flag_in_its_group(tmp_path):
     assert all(name in r.stdout for name in cli.flag_names(train.Config))
     groups = [line for line in r.stdout.splitlines() if line.startswith("the ")]
     assert groups == ["the experiment (train.py Config):", "the experiment (sear.py Config):",
-                      "the experiment (baselines.py BaselineConfig):", "the experiment (drm.py DrMConfig):",
+                      "the experiment (baselines.py BaselineConfig):",
+                      "the experiment (foresight.py ForesightConfig):", "the experiment (drm.py DrMConfig):",
                       "the experiment (experiment.py EnvConfig):", "the run (cli.py RunConfig):"]
 
 
@@ -304,7 +305,7 @@ def test_help_shows_per_task_defaults_as_such():
     import sear
     import train
     text = " ".join(cli.build_parser(train.Config, sear.METHODS, full=True).format_help().split())
-    assert "(default: 4096; per task: 512 on the task sets (metaworld-mt3, -mt10, -mt50))" in text
+    assert "(default: 4096; per task: 512 on the task sets (metaworld-mt3, -mt10, -mt50); 2048 with --method ef)" in text
     assert ("(default: 500000; per task: 2000000 on the task sets; on dm_control tasks DrQ-v2's by task: 100000 "
             "(easy), 500000") in text
     assert "frames between evaluations (snapshots follow --snapshot-minutes) (default: 10000)" in text

@@ -42,9 +42,11 @@ def test_compiled_update_equals_eager(device, method, drm):
     eager = train.make_agent(cfg, action_dim=2, device=device)
     compiled = compiled_copy(eager)
     # CURL's own step moves its encoder at 2 x its lr (20 x the agent's): a rounding-sized gradient that Adam
-    # turns into a step of that size changes the next losses by as much more
+    # turns into a step of that size moves the next updates as much further, so CURL's weights and losses are
+    # compared after its first update (both from the same weights), the others' after three
     lr = max(cfg.lr, 2 * cfg.curl_lr if method == "curl" else 0)
-    for i in range(UPDATES):
+    updates = 1 if method == "curl" else UPDATES
+    for i in range(updates):
         batch = fake_batch(seed=i, device=device)
         torch.manual_seed(100 + i)
         want = eager.update(batch, step=5_000 + 2 * i)
@@ -53,14 +55,14 @@ def test_compiled_update_equals_eager(device, method, drm):
         assert got.keys() == want.keys()
         assert all(torch.isfinite(torch.as_tensor(v)).all() for v in got.values()), got
         for k in want if same_draws else ():
-            assert float(got[k]) == pytest.approx(float(want[k]), rel=1e-4 * lr / cfg.lr, abs=1e-5 * lr / cfg.lr), (i, k)
+            assert float(got[k]) == pytest.approx(float(want[k]), rel=1e-4, abs=1e-5), (i, k)
     for name in ("encoder", "actor", "critic", "critic_target", "aux") if same_draws else ():
         ours, theirs = getattr(compiled, name), getattr(eager, name)
         if ours is None:
             continue
         for (pname, p), q in zip(ours.named_parameters(), theirs.parameters()):
             diff = (p - q).abs()
-            assert diff.max() <= 2 * lr * UPDATES, f"{name}.{pname}"
+            assert diff.max() <= 2 * lr * updates, f"{name}.{pname}"
             assert (diff > lr / 10).float().mean() < 0.01, f"{name}.{pname}"
     # One graph (fullgraph=True would have raised on a break), compiled once: no recompilation per step.
     assert not torch._dynamo.utils.counters["graph_break"]
