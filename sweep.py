@@ -360,8 +360,8 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
         for v in variants:
             # Grid budgets first, then the variant's settings; the user's flags win.
             # a flag given for the grid that does nothing for this method is dropped (one line in its log)
-            flags = [*(grid.flags if grid else ()), *v.flags, *passthrough, "--drop-inapplicable"]
-            base = ["--env", env, "--method", v.method]
+            flags = [*(grid.flags if grid else ()), *v.flags, *passthrough]
+            base = ["--env", env, "--method", v.method, "--drop-inapplicable"]
             cfg = sear_config([*base, "--seed", str(seeds[0]), *flags], f"{env} {v.label}")
             key, resume = config_key(cfg), resume_flags(cfg)
             for seed in seeds:

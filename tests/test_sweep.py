@@ -438,7 +438,9 @@ def test_a_sweep_submitted_to_slurm_stays_on_slurm(tmp_path, monkeypatch, capsys
     assert sweep.main([*argv, "--name", "new", "--dry-run"]) == 0
     assert line(capsys.readouterr().out, "engine: ") == (f"engine: slurm ({out / 'new' / 'sweep.json'} records it; "
                                                          f"--engine local runs it here)")
-    (bin_dir / "srun").unlink()  # the folder copied to a machine without SLURM
+    (bin_dir / "srun").unlink()  # the folder copied to a machine without SLURM (this one may have it)
+    (bin_dir / "cat").symlink_to(shutil.which("cat"))
+    monkeypatch.setenv("PATH", str(bin_dir))
     assert sweep.main([*argv, "--dry-run"]) == 2
     assert capsys.readouterr().err == (f"sweep.py: error: engine slurm (the jobs in {out / 'custom'} went to SLURM; "
                                        f"--engine local runs it here), but srun is not on this machine's PATH\n")
