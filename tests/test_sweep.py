@@ -316,7 +316,7 @@ def test_engine_slurm_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatc
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "cup-catch", "--methods", "drq", "--seeds", "1-2",
                        "--engine", "slurm", "--partition", "gpu", "--account", "lab", "--time-limit", "600",
-                       "--threads", "2", "--slurm-array-parallelism", "3", "--frames", "40"]) == 0
+                       "--threads", "2", "--slurm-array-parallelism", "3", "--seeds-per-job", "1", "--frames", "40"]) == 0
     script = (tmp_path / "submitted.sh").read_text()
     for line in ("--partition=gpu", "--account=lab", "--time=600", "--cpus-per-task=2", "--gpus-per-node=1",
                  "--array=0-3%3"):
@@ -376,7 +376,7 @@ def test_a_refused_submission_is_one_line_with_sbatchs_reason(tmp_path, monkeypa
     fake_slurm(tmp_path, monkeypatch, sinfo="gpu*|gpu:1|8|32000\n", sbatch=sbatch)
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2",
-                       "--engine", "slurm", "--frames", "40"]) == 2
+                       "--engine", "slurm", "--seeds-per-job", "1", "--frames", "40"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"sweep.py: error: {message}") and err.count("\n") == 1, err
     assert sweep.main(["--out", str(out), "--status"]) == 0  # nothing was queued
