@@ -1330,7 +1330,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "at a time")
     eng.add_argument("--seeds-per-job", type=int, help="seeds of one task and method per job, run as one "
                      "`sear.py --seeds` process (group.py) where the method allows (default: as many as this "
-                     "machine's GPU holds, at most 16; 4 on SLURM with GPUs; 1 without a GPU)")
+                     "machine's GPU holds, at most 16; 4 on SLURM with GPUs, fewer where a node holds fewer; "
+                     "1 without a GPU)")
     eng.add_argument("--partition", help="SLURM partition")
     eng.add_argument("--account", help="SLURM account")
     eng.add_argument("--slurm-array-parallelism", type=int, help="SLURM: array tasks at a time")
@@ -1566,7 +1567,7 @@ def resources(args, engine: str, why: str, todo: list[JobSpec], sweep_dir: str) 
     part = slurm_partition(args.partition) if engine == "slurm" else None
     check_cpus(args, part)
     gpus, gpu_note = job_gpus(args, engine, part)
-    k, pack_note, slots = seeds_per_job(args, engine, gpus, todo)
+    k, pack_note, slots = seeds_per_job(args, engine, gpus, part, todo)
     print(f"engine: {engine} ({why})")
     units = packs(todo, k, sweep_dir)
     most = max([len(u.specs) for u in units if isinstance(u, Pack)], default=1)
@@ -1590,23 +1591,28 @@ SLURM_SEEDS_PER_JOB = 4
 MOST_SEEDS_PER_JOB = 16
 
 
-def seeds_per_job(args, engine: str, gpus: int, todo: list[JobSpec]) -> tuple[int, str, int | None]:
+def seeds_per_job(args, engine: str, gpus: int, part: Partition | None,
+                  todo: list[JobSpec]) -> tuple[int, str, int | None]:
     """(seeds per job, why, jobs at a time the GPUs hold or None): --seeds-per-job; else 1 without a
-    GPU (one process per seed uses the cores as well); SLURM_SEEDS_PER_JOB on SLURM; here, as many as
-    the GPU's and this machine's memory hold at a run's measured need (run_memory, + 25%), at most
-    MOST_SEEDS_PER_JOB, each packed job then on GPUs of its own."""
+    GPU (one process per seed uses the cores as well); on SLURM SLURM_SEEDS_PER_JOB, or fewer where a
+    node's memory holds fewer; here, as many as the GPU's and this machine's memory hold at a run's
+    measured need (run_memory, + 25%), at most MOST_SEEDS_PER_JOB, each packed job then on GPUs of its
+    own."""
     if args.seeds_per_job:
         return args.seeds_per_job, "--seeds-per-job", None
     if not gpus:
         return 1, "no GPU: one process per seed uses the cores as well; --seeds-per-job packs them", None
-    if engine != "local":
-        return SLURM_SEEDS_PER_JOB, ("the GPUs' memory is not visible at submission, so a conservative "
-                                     "default; --seeds-per-job sets it"), None
     if max(collections.Counter((s.env, s.variant, s.key) for s in todo).values(), default=0) < 2:
-        return 1, "one seed per task and method to run", None
+        return 1, "one seed of each task and method to run", None
     distinct = {(s.env, s.variant, s.key): s for s in todo}.values()
     with contextlib.redirect_stdout(io.StringIO()):  # the recipe's notes, printed once already by plan()
         need = max(run_memory(sear_config(list(s.args), s.name))[0] for s in distinct) * HEADROOM
+    if engine != "local":
+        node_gb = part.mem_mb / 1024 if part is not None and part.mem_mb else None
+        k = max(1, min(SLURM_SEEDS_PER_JOB, int(node_gb // need) if node_gb else SLURM_SEEDS_PER_JOB))
+        held = f"; a node of {part.name} holds {k} at {need:.1f} GB a seed" if k < SLURM_SEEDS_PER_JOB else ""
+        return k, (f"the GPUs' memory is not visible at submission, so a conservative default{held}; "
+                   "--seeds-per-job sets it"), None
     import torch
     gpu_gb = min(torch.cuda.get_device_properties(i).total_memory for i in range(len(local_gpus()))) / 2**30
     host_gb = local_memory_gb()

@@ -332,7 +332,8 @@ def test_engine_slurm_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatc
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "cup-catch", "--methods", "drq", "--seeds", "1-2",
                        "--engine", "slurm", "--partition", "gpu", "--account", "lab", "--time-limit", "600",
-                       "--threads", "2", "--slurm-array-parallelism", "3", "--seeds-per-job", "1", "--frames", "40"]) == 0
+                       "--threads", "2", "--slurm-array-parallelism", "3", "--seeds-per-job", "1",
+                       "--frames", "40"]) == 0
     script = (tmp_path / "submitted.sh").read_text()
     for line in ("--partition=gpu", "--account=lab", "--time=600", "--cpus-per-task=2", "--gpus-per-node=1",
                  "--array=0-3%3"):
@@ -732,6 +733,12 @@ def test_the_default_seeds_per_job_comes_from_the_gpus_memory_here_and_is_4_on_s
     assert line(printed, "sweep custom: ").endswith(
         "; 4 seeds per job (the GPUs' memory is not visible at submission, so a conservative default; "
         "--seeds-per-job sets it)")
+    (tmp_path / "small").mkdir()
+    fake_slurm(tmp_path / "small", monkeypatch, sinfo="gpu*|gpu:1|8|32000\n")  # nodes of 31 GB: 3 seeds
+    assert sweep.main([*argv, "--engine", "slurm", "--name", "small"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-3", "seeds4-5"]
+    assert "; a node of the default partition holds 3 at 10.3 GB a seed;" in line(printed, "sweep small: ")
 
 
 def packed_args(out, *extra):
