@@ -34,9 +34,9 @@ Sweep folder: <out>/<sweep>/ (--name; default the grid's name, else custom)
 Job directory: <out>/<sweep>/<env>__<method>__<seed>__<hash of the other sear.py flags>/
   job.json      what the job is: the sear.py arguments of a fresh run and of a resume
   run/          sear.py's --run-root: exactly one run directory
-  pack.json     only for a seed run in a pack: {"pack": its folder, "seeds", "seed"}; the run is then
-                the seed's member of the pack's group folder, and the files below but job.json are
-                written for the pack's process
+  pack.json     only for a seed run in a pack: {"pack": its folder, "seeds", "seed"}; its run is then
+                the seed's run in the pack's group folder, its status.json, lock and DONE the pack
+                process's, its logs in the pack's folder
   stdout.log    sear.py's stdout, after a "=== attempt" header line at every start; stderr.log
                 likewise
   status.json   queued | running | done | failed | interrupted, the exit code, the last stderr line
@@ -445,7 +445,7 @@ def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list:
         else:
             fresh.setdefault((spec.env, spec.variant, spec.key), []).append(spec)
             units[spec.name] = None  # its place in the order
-    for (env, variant, key), specs in fresh.items():
+    for (_, variant, _), specs in fresh.items():
         for i in range(0, len(specs), k):
             chunk = specs[i:i + k]
             why = pack_refusal(chunk[0]) if len(chunk) > 1 else None

@@ -707,6 +707,16 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     assert "1 seed per job (no GPU: one process per seed uses the cores as well; --seeds-per-job packs them)" \
         in line(printed, "sweep custom: ")
 
+    # Run again: a seed that ran alone stays alone, a seed of a pack stays in it; only the others are packed.
+    (out / "custom" / f"walker-walk__drq__1__{key}" / "run" / "a-single-run").mkdir(parents=True)
+    for seed in (4, 5):
+        (out / "custom" / f"walker-walk__drq__{seed}__{key}").mkdir()
+        sweep.write_json(str(out / "custom" / f"walker-walk__drq__{seed}__{key}" / "pack.json"),
+                         {"pack": f"walker-walk__drq__seeds4-5__{key}", "seeds": [4, 5], "seed": seed})
+    assert sweep.main(["--seeds-per-job", "3", *argv]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs if n.startswith("walker-walk__drq__")] == ["1", "seeds2-3", "seeds4-5"]
+
 
 def test_the_default_seeds_per_job_comes_from_the_gpus_memory_here_and_is_4_on_slurm(tmp_path, monkeypatch, capsys):
     import types
