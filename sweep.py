@@ -34,12 +34,23 @@ Sweep folder: <out>/<sweep>/ (--name; default the grid's name, else custom)
 Job directory: <out>/<sweep>/<env>__<method>__<seed>__<hash of the other sear.py flags>/
   job.json      what the job is: the sear.py arguments of a fresh run and of a resume
   run/          sear.py's --run-root: exactly one run directory
+  pack.json     only for a seed run in a pack: {"pack": its folder, "seeds", "seed"}; its run is then
+                the seed's run in the pack's group folder, its status.json, lock and DONE the pack
+                process's, its logs in the pack's folder
   stdout.log    sear.py's stdout, after a "=== attempt" header line at every start; stderr.log
                 likewise
   status.json   queued | running | done | failed | interrupted, the exit code, the last stderr line
   lock          pid, host and job id of the process that runs the job (a dead holder is taken over)
   DONE          written after sear.py exits 0: a re-run skips the job
-A snapshot-less run that failed is moved, untouched, to <out>/<sweep>.aside/ before a clean restart.
+Pack directory: <out>/<sweep>/<env>__<method>__seeds<seeds>__<hash>/ (--seeds-per-job: seeds of one
+  task and method in one `sear.py --seeds` process, group.py; default: as many as this machine's GPU
+  holds, 4 on SLURM with GPUs, 1 without a GPU; a method group.py cannot batch runs one seed a job)
+  run/          sear.py's --run-root: one group folder (group.json, a run directory per seed)
+  stdout.log, stderr.log, status.json   the process's, as a job's; the lock and DONE are each seed's
+  A seed keeps its pack when the sweep runs again (with any --seeds-per-job): the pack resumes with
+  `sear.py --resume <group folder>`; a seed that ran alone stays alone.
+A snapshot-less run that failed is moved, untouched, to <out>/<sweep>.aside/ before a clean restart
+(a pack's group folder without every seed's snapshot too).
 
 Sections: 1. the paper's grids  2. from flags to jobs  3. job directories: lock, status, the run
           4. the job  5. engines  6. status table  7. report  8. CLI
@@ -47,6 +58,7 @@ Sections: 1. the paper's grids  2. from flags to jobs  3. job directories: lock,
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import csv
 import dataclasses
@@ -370,6 +382,82 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
     return sweep, specs, grid
 
 
+def seed_spec(seeds) -> str:
+    """[1, 2, 3, 5] -> '1-3,5': sear.py's --seeds (group.parse_seeds reads it)."""
+    parts, start = [], 0
+    for i, seed in enumerate(seeds):
+        if i + 1 == len(seeds) or seeds[i + 1] != seed + 1:
+            parts.append(str(seeds[start]) if i == start else f"{seeds[start]}-{seed}")
+            start = i + 1
+    return ",".join(parts)
+
+
+def with_seed(spec: JobSpec, seed: int) -> JobSpec:
+    """The same job for another seed."""
+    args = list(spec.args)
+    args[args.index("--seed") + 1] = str(seed)
+    return dataclasses.replace(spec, seed=seed, args=tuple(args))
+
+
+@dataclass(frozen=True)
+class Pack:
+    """Seeds of one (env, variant, key) run as one `sear.py --seeds` process (group.py); each seed
+    keeps its own job directory, the process has the pack's."""
+    specs: tuple[JobSpec, ...]
+
+    @property
+    def seeds(self) -> list[int]:
+        return [s.seed for s in self.specs]
+
+    @property
+    def name(self) -> str:
+        s = self.specs[0]
+        return f"{s.env}__{s.variant}__seeds{seed_spec(self.seeds)}__{s.key}"
+
+    @property
+    def args(self) -> tuple[str, ...]:
+        args = list(self.specs[0].args)
+        i = args.index("--seed")
+        args[i:i + 2] = ["--seeds", seed_spec(self.seeds)]
+        return tuple(args)
+
+
+def pack_refusal(spec: JobSpec) -> str | None:
+    """Why the job's configuration cannot run as a seed group (group.refusal), or None."""
+    import group
+    with contextlib.redirect_stdout(io.StringIO()):  # the recipe's notes, printed once already by plan()
+        cfg = sear_config(list(spec.args), spec.name)
+    return group.refusal(cfg, cfg)
+
+
+def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list:
+    """The jobs to run: a Pack of each seed's recorded pack (pack.json), a JobSpec of each seed whose
+    folder holds a single run, and the other seeds of each (env, variant, key) in order in packs of at
+    most k (a pack of 1, or of a configuration group.refusal refuses: single jobs, with one line)."""
+    units, fresh, refused = {}, {}, set()
+    for spec in todo:
+        recorded = read_json(os.path.join(sweep_dir, spec.name, PACK_FILE))
+        if recorded:
+            unit = Pack(tuple(with_seed(spec, s) for s in recorded["seeds"]))
+            units.setdefault(unit.name, unit)
+        elif run_dirs(os.path.join(sweep_dir, spec.name)) or k == 1:
+            units[spec.name] = spec
+        else:
+            fresh.setdefault((spec.env, spec.variant, spec.key), []).append(spec)
+            units[spec.name] = None  # its place in the order
+    for (_, variant, _), specs in fresh.items():
+        for i in range(0, len(specs), k):
+            chunk = specs[i:i + k]
+            why = pack_refusal(chunk[0]) if len(chunk) > 1 else None
+            if why and variant not in refused:
+                print(f"packing: {variant} runs one seed per job: {why}")
+                refused.add(variant)
+            unit = Pack(tuple(chunk)) if len(chunk) > 1 and not why else None
+            for spec in chunk:
+                units[spec.name] = unit or spec
+    return list({id(u): u for u in units.values()}.values())
+
+
 # ================================================================================================
 # 3. Job directories: lock, status, the run
 # ================================================================================================
@@ -480,11 +568,32 @@ def drop_lock(job_dir: str, me: dict) -> None:
             os.remove(path)
 
 
+# A seed's job directory run by a pack holds pack.json, {"pack": the pack's folder, "seeds": its
+# seeds, "seed": this folder's}; its run is the seed's member of the group folder in the pack's run/.
+PACK_FILE = "pack.json"
+GROUP_FILE = "group.json"  # group.GROUP_FILE, read here without group.py's torch
+
+
 def run_dirs(job_dir: str) -> list[str]:
+    """The job's run directories: those in its run/, or, for a seed run by a pack, the seed's run
+    inside the pack's group folder."""
+    pack = read_json(os.path.join(job_dir, PACK_FILE))
+    if pack:
+        return member_runs(os.path.join(os.path.dirname(os.path.normpath(job_dir)), pack["pack"]), pack["seed"])
     root = os.path.join(job_dir, "run")
     if not os.path.isdir(root):
         return []
     return sorted(os.path.join(root, d) for d in os.listdir(root) if os.path.isdir(os.path.join(root, d)))
+
+
+def member_runs(pack_dir: str, seed: int) -> list[str]:
+    """The run directories of `seed` in the group folders of a pack's run/ (their group.json)."""
+    runs = []
+    for folder in run_dirs(pack_dir):
+        members = (read_json(os.path.join(folder, GROUP_FILE)) or {}).get("runs", {})
+        if str(seed) in members and os.path.isdir(os.path.join(folder, members[str(seed)])):
+            runs.append(os.path.join(folder, members[str(seed)]))
+    return runs
 
 
 def last_line(path: str, offset: int = 0) -> str:
@@ -581,27 +690,47 @@ class SearJob(submitit.helpers.Checkpointable):
         self.threads, self.script, self.python = threads, script, python
         self.devices = devices  # CUDA_VISIBLE_DEVICES for sear.py; None: as given (SLURM sets it)
 
+    def lock_dirs(self) -> list[str]:
+        """The job directories whose locks the job takes, and DONE marks."""
+        return [self.job_dir]
+
+    def state_dirs(self) -> list[str]:
+        """The directories whose status.json says what the job's process did."""
+        return [self.job_dir]
+
     def __call__(self) -> str:
-        me = whoami()
-        holder = take_lock(self.job_dir, me)
-        if holder is not None:
-            return f"skipped: already running ({describe(holder)})"
+        me, taken = whoami(), []
+        for job_dir in self.lock_dirs():
+            holder = take_lock(job_dir, me)
+            if holder is not None:
+                for held in taken:
+                    drop_lock(held, me)
+                return f"skipped: already running ({describe(holder)})"
+            taken.append(job_dir)
         try:
-            return "done" if is_done(self.job_dir) else self.run(me)
+            return "done" if all(is_done(d) for d in self.lock_dirs()) else self.run(me)
         except KeyboardInterrupt:
-            set_status(self.job_dir, "interrupted", error="interrupted; re-run the sweep to resume")
+            self.set_status("interrupted", error="interrupted; re-run the sweep to resume")
             raise
         finally:
-            drop_lock(self.job_dir, me)
+            for held in taken:
+                drop_lock(held, me)
+
+    def set_status(self, state: str, **info) -> None:
+        for job_dir in self.state_dirs():
+            set_status(job_dir, state, **info)
+
+    def resumable(self, run: str) -> bool:
+        return os.path.exists(os.path.join(run, "snapshot.pt"))
 
     def run(self, me: dict) -> str:
         runs = run_dirs(self.job_dir)
         if len(runs) > 1:
             error = f"{os.path.join(self.job_dir, 'run')} holds {len(runs)} runs; move all but one out"
-            set_status(self.job_dir, "failed", error=error)
+            self.set_status("failed", error=error)
             return f"failed: {error}"
         moved = ""
-        if runs and os.path.exists(os.path.join(runs[0], "snapshot.pt")):
+        if runs and self.resumable(runs[0]):
             argv = ["--resume", runs[0], *self.resume_args]
         else:
             if runs:  # died before its first snapshot: keep it, out of the way, and start clean
@@ -609,7 +738,7 @@ class SearJob(submitit.helpers.Checkpointable):
             argv = [*self.args, "--run-root", os.path.join(self.job_dir, "run")]
         cmd = [self.python, self.script, *argv]
         attempt = (read_json(os.path.join(self.job_dir, "status.json")) or {}).get("attempts", 0) + 1
-        set_status(self.job_dir, "running", attempts=attempt, owner=me)
+        self.set_status("running", attempts=attempt, owner=me)
         env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "MKL_NUM_THREADS": str(self.threads),
                "PYTHONUNBUFFERED": "1", **({} if self.devices is None else {"CUDA_VISIBLE_DEVICES": self.devices})}
         with open(os.path.join(self.job_dir, "stdout.log"), "a") as out, \
@@ -622,18 +751,24 @@ class SearJob(submitit.helpers.Checkpointable):
                 f.flush()
             offset = err.tell()
             code = subprocess.run(cmd, stdout=out, stderr=err, env=env, cwd=self.job_dir).returncode
+        return self.settle(code, attempt, offset)
+
+    def settle(self, code: int, attempt: int, offset: int) -> str:
+        """DONE and status done after exit 0; interrupted after SIGTERM; else failed with the last
+        stderr line."""
         if code == 0:
-            with open(os.path.join(self.job_dir, "DONE"), "w") as f:
-                f.write(time.strftime("%Y-%m-%d %H:%M:%S\n"))
-            set_status(self.job_dir, "done", attempts=attempt, exit_code=0)
+            for job_dir in self.lock_dirs():
+                with open(os.path.join(job_dir, "DONE"), "w") as f:
+                    f.write(time.strftime("%Y-%m-%d %H:%M:%S\n"))
+            self.set_status("done", attempts=attempt, exit_code=0)
             return "done"
         how = f"exit code {code}" if code > 0 else f"killed by signal {-code}"
         if code in (-signal.SIGTERM, 128 + signal.SIGTERM):  # scancel, a time limit, a shutdown
             error = f"stopped by SIGTERM ({how}); re-run the sweep to resume"
-            set_status(self.job_dir, "interrupted", attempts=attempt, exit_code=code, error=error)
+            self.set_status("interrupted", attempts=attempt, exit_code=code, error=error)
             return f"interrupted: {error}"
         error = last_line(os.path.join(self.job_dir, "stderr.log"), offset) or how
-        set_status(self.job_dir, "failed", attempts=attempt, exit_code=code, error=f"{how}: {error}")
+        self.set_status("failed", attempts=attempt, exit_code=code, error=f"{how}: {error}")
         return f"failed: {how}: {error}"
 
     def move_aside(self, run: str) -> str:
@@ -647,6 +782,29 @@ class SearJob(submitit.helpers.Checkpointable):
         os.makedirs(os.path.dirname(dest), exist_ok=True)
         shutil.move(run, dest)
         return dest
+
+
+class PackJob(SearJob):
+    """Several seeds' jobs as one `sear.py --seeds` process (group.py), run from the pack's folder
+    (its run/ holds the group folder; its logs and status.json the process's). It holds every seed's
+    lock (one held by a live process: it takes none and skips), and every seed's status.json and
+    DONE say what the process did. The group folder resumes (`--resume GROUP_DIR`) when every seed
+    has its snapshot; a group folder without them is moved aside, as a single run's is."""
+
+    def __init__(self, pack_dir: str, job_dirs: list[str], args: list[str], resume_args: list[str], threads: int,
+                 script: str, python: str = sys.executable, devices: str | None = None):
+        super().__init__(pack_dir, args, resume_args, threads, script, python, devices)
+        self.job_dirs = list(job_dirs)
+
+    def lock_dirs(self) -> list[str]:
+        return self.job_dirs
+
+    def state_dirs(self) -> list[str]:
+        return [self.job_dir, *self.job_dirs]
+
+    def resumable(self, run: str) -> bool:
+        runs = (read_json(os.path.join(run, GROUP_FILE)) or {}).get("runs")
+        return bool(runs) and all(os.path.exists(os.path.join(run, r, "snapshot.pt")) for r in runs.values())
 
 
 # ================================================================================================
@@ -680,7 +838,8 @@ def pick_engine(args) -> tuple[str, str]:
                                  ("--slurm-array-parallelism", args.slurm_array_parallelism)) if v is not None]
     if engine != "slurm" and slurm_only:
         raise SweepError(f"{slurm_only[0]} needs SLURM, but the engine is {engine} ({why})")
-    for name in ("jobs", "threads", "time_limit", "gpus_per_job", "mem_gb", "slurm_array_parallelism"):
+    for name in ("jobs", "threads", "time_limit", "gpus_per_job", "mem_gb", "slurm_array_parallelism",
+                 "seeds_per_job"):
         value, least = getattr(args, name), 0 if name == "gpus_per_job" else 1
         if value is not None and value < least:
             raise SweepError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
@@ -797,15 +956,17 @@ def local_memory_gb() -> float:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
 
 
-def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec]) -> tuple[int, float | None, str]:
+def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec],
+               seeds: int = 1) -> tuple[int, float | None, str]:
     """(GB per job, GB of the largest node or None when unknown, the line that says both and why):
-    --mem-gb, else the largest job's measured peak plus headroom. One that no node holds fails here,
-    in one line."""
+    --mem-gb, else the largest run's measured peak plus headroom, times the seeds a job runs. One
+    that no node holds fails here, in one line."""
     distinct = {(s.env, s.variant, s.key): s for s in specs}.values()  # the seed changes nothing
     # the recipe's notes, printed once already by plan()
     with contextlib.redirect_stdout(io.StringIO()):
         peak, agent, held, how = max(run_memory(sear_config(list(s.args), s.name)) for s in distinct)
-    need = max(1, math.ceil(peak * HEADROOM))
+    need = max(1, math.ceil(peak * HEADROOM * seeds))
+    how += f", x {seeds} seeds a job" if seeds > 1 else ""
     asked = args.mem_gb or need
     if engine == "local":
         node, where = local_memory_gb(), "this machine has"
@@ -818,8 +979,10 @@ def job_memory(args, engine: str, part: Partition | None, specs: list[JobSpec]) 
         if args.mem_gb:
             raise SweepError(f"--mem-gb {asked}: {have}")
         # whole GB asked
-        fits = int((math.floor(node) / HEADROOM - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000
+        fits = int((math.floor(node) / HEADROOM / seeds - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000
         hint = f"; --replay-size {fits} fits" if 0 < fits < held else ""
+        fewer = int(math.floor(node) // (peak * HEADROOM))
+        hint = f"; --seeds-per-job {fewer} fits" if 1 <= fewer < seeds else hint
         raise SweepError(f"a job needs {need} GB ({how}), but {have}{hint}")
     why = f"--mem-gb; the estimate is {need} GB" if args.mem_gb else f"{how}; --mem-gb sets it"
     return asked, node, f"memory: {asked} GB per job ({why})" + (f"; {have}" if have else "")
@@ -1165,6 +1328,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "for the job's "
                      "method, batch and replay, + 25%%); SLURM asks it, locally it bounds the jobs "
                      "at a time")
+    eng.add_argument("--seeds-per-job", type=int, help="seeds of one task and method per job, run as one "
+                     "`sear.py --seeds` process (group.py) where the method allows (default: as many as this "
+                     "machine's GPU holds, at most 16; 4 on SLURM with GPUs, fewer where a node holds fewer; "
+                     "1 without a GPU)")
     eng.add_argument("--partition", help="SLURM partition")
     eng.add_argument("--account", help="SLURM account")
     eng.add_argument("--slurm-array-parallelism", type=int, help="SLURM: array tasks at a time")
@@ -1326,14 +1493,15 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) ->
     done = [s for s in specs if is_done(dirs[s])]
     busy = [s for s in specs if s not in done and alive(read_json(os.path.join(dirs[s], "lock"))) is not False]
     todo = [s for s in specs if s not in done and s not in busy]
-    gpus, mem_gb, parallel, where = resources(args, engine, why, todo)
+    gpus, mem_gb, parallel, where, units, packing = resources(args, engine, why, todo, sweep_dir)
     shape = f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x " \
             f"{len({s.seed for s in specs})} seeds"
+    grouped = f" in {len(units)} process{'es' * (len(units) != 1)}" if any(isinstance(u, Pack) for u in units) else ""
     print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running "
-          f"elsewhere, {len(todo)} to run ({where})", flush=True)
+          f"elsewhere, {len(todo)} to run{grouped} ({where}); {packing}", flush=True)
     if args.dry_run:
-        for s in todo:
-            print(f"{s.name}: sear.py {shlex.join(s.args)}")
+        for u in units:
+            print(f"{u.name}: sear.py {shlex.join(u.args)}")
         return 0
     held = record_sweep(sweep_dir, args.grid, args.flags, args.argv, specs, engine)
     if held > 1:
@@ -1344,16 +1512,17 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) ->
         if engine == "local" and not busy:
             report(args.out, args.sweep, specs, metric)
         return 0
-    jobs = {spec: new_job(dirs[spec], spec, args.threads) for spec in todo}
+    jobs = {u: new_job(sweep_dir, u, args.threads) for u in units}
     executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
     if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
         import cloudpickle                # they need no `import sweep` from whatever their cwd is
         cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
     if engine != "local":  # one SLURM array; this process only submits
-        return submit(executor, jobs, dirs, mem_gb, engine, sweep_dir)
+        return submit(executor, jobs, mem_gb, engine, sweep_dir)
     driver = whoami()
-    for spec in todo:
-        mark_queued(dirs[spec], driver)
+    for job in jobs.values():
+        for job_dir in job.state_dirs():
+            mark_queued(job_dir, driver)
     try:
         results = run_local(executor, jobs, parallel, job_devices(gpus, local_gpus(), parallel))
     except KeyboardInterrupt:
@@ -1365,6 +1534,8 @@ def run(args, specs: list[JobSpec], grid: Grid | None, engine: str, why: str) ->
 
 def finished_here(args, specs: list[JobSpec], metric: str | None, results: dict) -> int:
     """After the jobs run here: how many finished, and the report. 1 if one failed."""
+    # a pack's outcome is each of its seeds'
+    results = {s: r for u, r in results.items() for s in (u.specs if isinstance(u, Pack) else (u,))}
     failed = [s for s, r in results.items() if r.startswith(("failed", "interrupted"))]
     print(f"{len(results) - len(failed)} of {len(results)} jobs finished"
           + (f"; {len(failed)} failed (see --status)" if failed else ""))
@@ -1372,22 +1543,36 @@ def finished_here(args, specs: list[JobSpec], metric: str | None, results: dict)
     return 1 if failed else 0
 
 
-def new_job(job_dir: str, spec: JobSpec, threads: int) -> SearJob:
-    """A job's folder with its job.json, and the job."""
+def new_job(sweep_dir: str, unit: JobSpec | Pack, threads: int) -> SearJob:
+    """A job's folder with its job.json, and the job; for a pack, each seed's folder, with its
+    pack.json too, and the pack's folder."""
+    for spec in unit.specs if isinstance(unit, Pack) else (unit,):
+        job_dir = os.path.abspath(os.path.join(sweep_dir, spec.name))
+        os.makedirs(job_dir, exist_ok=True)
+        write_json(os.path.join(job_dir, "job.json"), dataclasses.asdict(spec))
+        if isinstance(unit, Pack):
+            write_json(os.path.join(job_dir, PACK_FILE), {"pack": unit.name, "seeds": unit.seeds, "seed": spec.seed})
+    job_dir = os.path.abspath(os.path.join(sweep_dir, unit.name))
+    if not isinstance(unit, Pack):
+        return SearJob(job_dir, unit.args, unit.resume_args, threads, script=SEAR_PY)
     os.makedirs(job_dir, exist_ok=True)
-    write_json(os.path.join(job_dir, "job.json"), dataclasses.asdict(spec))
-    return SearJob(job_dir, spec.args, spec.resume_args, threads, script=SEAR_PY)
+    seeds = [os.path.abspath(os.path.join(sweep_dir, spec.name)) for spec in unit.specs]
+    return PackJob(job_dir, seeds, unit.args, unit.specs[0].resume_args, threads, script=SEAR_PY)
 
 
-def resources(args, engine: str, why: str, todo: list[JobSpec]) -> tuple:
-    """(GPUs per job, memory per job in GB, jobs at a time here, where they run) of the jobs to run,
-    after the lines that say which engine and how much memory."""
+def resources(args, engine: str, why: str, todo: list[JobSpec], sweep_dir: str) -> tuple:
+    """(GPUs per job, memory per job in GB, jobs at a time here, where they run, the jobs: JobSpecs
+    and Packs, seeds per job and why) of the seeds to run, after the lines that say which engine and
+    how much memory."""
     part = slurm_partition(args.partition) if engine == "slurm" else None
     check_cpus(args, part)
     gpus, gpu_note = job_gpus(args, engine, part)
-    mem_gb, node_gb, mem_line = job_memory(args, engine, part, todo) if todo else (args.mem_gb, None, "")
+    k, pack_note, slots = seeds_per_job(args, engine, gpus, part, todo)
     print(f"engine: {engine} ({why})")
-    parallel = args.jobs or max(1, cpu_count() // args.threads)
+    units = packs(todo, k, sweep_dir)
+    most = max([len(u.specs) for u in units if isinstance(u, Pack)], default=1)
+    mem_gb, node_gb, mem_line = job_memory(args, engine, part, todo, most) if todo else (args.mem_gb, None, "")
+    parallel = args.jobs or min(max(1, cpu_count() // args.threads), slots or math.inf)
     if engine == "local" and node_gb and parallel * mem_gb > node_gb:
         fit = max(1, int(node_gb // mem_gb))  # job_memory refused a job that fits nowhere
         if args.jobs:
@@ -1397,14 +1582,52 @@ def resources(args, engine: str, why: str, todo: list[JobSpec]) -> tuple:
     if mem_line:
         print(mem_line)
     where = f"{engine}, {parallel} at a time, {args.threads} thread(s) each" if engine == "local" else engine
-    return gpus, mem_gb, parallel, f"{where}, {gpu_note}"
+    return gpus, mem_gb, parallel, f"{where}, {gpu_note}", units, f"{plural(k, 'seed')} per job ({pack_note})"
 
 
-def submit(executor, jobs: dict, dirs: dict, mem_gb, engine: str, sweep_dir: str) -> int:
+# Seeds per job on SLURM with GPUs, where the GPU's memory cannot be seen at submission: few enough
+# for any GPU a partition of the paper's runs has (4 default runs: about 33 GB by run_memory).
+SLURM_SEEDS_PER_JOB = 4
+MOST_SEEDS_PER_JOB = 16
+
+
+def seeds_per_job(args, engine: str, gpus: int, part: Partition | None,
+                  todo: list[JobSpec]) -> tuple[int, str, int | None]:
+    """(seeds per job, why, jobs at a time the GPUs hold or None): --seeds-per-job; else 1 without a
+    GPU (one process per seed uses the cores as well); on SLURM SLURM_SEEDS_PER_JOB, or fewer where a
+    node's memory holds fewer; here, as many as the GPU's and this machine's memory hold at a run's
+    measured need (run_memory, + 25%), at most MOST_SEEDS_PER_JOB, each packed job then on GPUs of its
+    own."""
+    if args.seeds_per_job:
+        return args.seeds_per_job, "--seeds-per-job", None
+    if not gpus:
+        return 1, "no GPU: one process per seed uses the cores as well; --seeds-per-job packs them", None
+    if max(collections.Counter((s.env, s.variant, s.key) for s in todo).values(), default=0) < 2:
+        return 1, "one seed of each task and method to run", None
+    distinct = {(s.env, s.variant, s.key): s for s in todo}.values()
+    with contextlib.redirect_stdout(io.StringIO()):  # the recipe's notes, printed once already by plan()
+        need = max(run_memory(sear_config(list(s.args), s.name))[0] for s in distinct) * HEADROOM
+    if engine != "local":
+        node_gb = part.mem_mb / 1024 if part is not None and part.mem_mb else None
+        k = max(1, min(SLURM_SEEDS_PER_JOB, int(node_gb // need) if node_gb else SLURM_SEEDS_PER_JOB))
+        held = f"; a node of {part.name} holds {k} at {need:.1f} GB a seed" if k < SLURM_SEEDS_PER_JOB else ""
+        return k, (f"the GPUs' memory is not visible at submission, so a conservative default{held}; "
+                   "--seeds-per-job sets it"), None
+    import torch
+    gpu_gb = min(torch.cuda.get_device_properties(i).total_memory for i in range(len(local_gpus()))) / 2**30
+    host_gb = local_memory_gb()
+    k = max(1, min(MOST_SEEDS_PER_JOB, int(min(gpu_gb, host_gb) // need)))
+    return k, (f"as many as a GPU's {gpu_gb:.0f} GB and this machine's {host_gb:.0f} GB hold at {need:.1f} GB "
+               f"a seed, at most {MOST_SEEDS_PER_JOB}; --seeds-per-job sets it"), \
+        max(1, len(local_gpus()) // gpus) if k > 1 else None
+
+
+def submit(executor, jobs: dict, mem_gb, engine: str, sweep_dir: str) -> int:
     """The jobs as one SLURM array; each job folder records its array task."""
     submitted = submit_array(executor, list(jobs.values()), mem_gb)
-    for spec, job in zip(jobs, submitted):
-        mark_queued(dirs[spec], {"cluster": engine, "job": job.job_id})
+    for job, task in zip(jobs.values(), submitted):
+        for job_dir in job.state_dirs():
+            mark_queued(job_dir, {"cluster": engine, "job": task.job_id})
     print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them "
           f"with --status, draw the curves with --report; logs in {sweep_dir}/<job>/")
     return 0

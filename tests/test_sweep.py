@@ -2,6 +2,7 @@
 jobs, locks, resume-or-restart, GPUs per job, SLURM through stand-in srun/sinfo/squeue/sbatch commands
 (what a one-node cluster cannot show: arrays over many nodes, GPUs, refusals) and through a real
 one-node SLURM (SEAR_REAL_SLURM=1, .ci/run), and the report."""
+import contextlib
 import csv
 import json
 import os
@@ -122,6 +123,7 @@ def test_seed_lists_and_ranges():
     (["--envs", "walker-walk", "--methods", "drq", "--account", "lab"],
      "--account needs SLURM, but the engine is local (default"),
     (["--envs", "walker-walk", "--methods", "drq", "--threads", "0"], "--threads must be >= 1, got 0"),
+    (["--envs", "walker-walk", "--methods", "drq", "--seeds-per-job", "0"], "--seeds-per-job must be >= 1, got 0"),
 ])
 def test_bad_input_fails_the_whole_sweep_up_front(tmp_path, capsys, argv, message):
     out = tmp_path / "sweeps"
@@ -137,25 +139,39 @@ def sweep_args(out, *extra):
             "--engine", "local", *extra, "--", *TINY]
 
 
+@contextlib.contextmanager
+def sweep_process(tmp_path, argv):
+    """sweep.py in a process group of its own (its output in first.log), killed whole at the end."""
+    with open(tmp_path / "first.log", "w") as log:
+        p = subprocess.Popen([sys.executable, str(ROOT / "sweep.py"), *argv],
+                             stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True,
+                             env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+        p.log = tmp_path / "first.log"
+        try:
+            yield p
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def wait_for_files(p, folder, pattern, count=1):
+    """Until `count` files under `folder` match `pattern`, while the sweep process `p` runs."""
+    deadline = time.time() + 120
+    while len(list(folder.glob(pattern))) < count:
+        assert p.poll() is None, p.log.read_text()[-2000:]
+        assert time.time() < deadline, f"no {pattern} in time"
+        time.sleep(0.02)
+
+
 def test_local_sweep_killed_midway_then_rerun_finishes_without_duplicates(tmp_path, capsys):
     out = tmp_path / "sweeps"
     folder = out / "custom"
 
     # A sweep one job at a time, killed whole (driver, submitit's processes, sear.py) once the first
     # job has written its first snapshot.
-    with open(tmp_path / "first.log", "w") as log:
-        p = subprocess.Popen([sys.executable, str(ROOT / "sweep.py"), *sweep_args(out, "--jobs", "1")],
-                             stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True,
-                             env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
-        try:
-            deadline = time.time() + 120
-            while not list(folder.glob("walker-walk__drq__1__*/run/*/snapshot.pt")):
-                assert p.poll() is None, (tmp_path / "first.log").read_text()[-2000:]
-                assert time.time() < deadline, "no snapshot in time"
-                time.sleep(0.05)
-        finally:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+    with sweep_process(tmp_path, sweep_args(out, "--jobs", "1")) as p:
+        wait_for_files(p, folder, "walker-walk__drq__1__*/run/*/snapshot.pt")
     first = next(folder.glob("walker-walk__drq__1__*"))
     assert not (first / "DONE").exists()
 
@@ -316,7 +332,8 @@ def test_engine_slurm_gets_one_array_with_the_cluster_flags(tmp_path, monkeypatc
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "cup-catch", "--methods", "drq", "--seeds", "1-2",
                        "--engine", "slurm", "--partition", "gpu", "--account", "lab", "--time-limit", "600",
-                       "--threads", "2", "--slurm-array-parallelism", "3", "--frames", "40"]) == 0
+                       "--threads", "2", "--slurm-array-parallelism", "3", "--seeds-per-job", "1",
+                       "--frames", "40"]) == 0
     script = (tmp_path / "submitted.sh").read_text()
     for line in ("--partition=gpu", "--account=lab", "--time=600", "--cpus-per-task=2", "--gpus-per-node=1",
                  "--array=0-3%3"):
@@ -376,7 +393,7 @@ def test_a_refused_submission_is_one_line_with_sbatchs_reason(tmp_path, monkeypa
     fake_slurm(tmp_path, monkeypatch, sinfo="gpu*|gpu:1|8|32000\n", sbatch=sbatch)
     out = tmp_path / "sweeps"
     assert sweep.main(["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2",
-                       "--engine", "slurm", "--frames", "40"]) == 2
+                       "--engine", "slurm", "--seeds-per-job", "1", "--frames", "40"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"sweep.py: error: {message}") and err.count("\n") == 1, err
     assert sweep.main(["--out", str(out), "--status"]) == 0  # nothing was queued
@@ -655,6 +672,173 @@ def test_a_run_stopped_by_sigterm_is_interrupted_not_failed(tmp_path):
     assert sweep.job_state(str(d)) == ("interrupted", "stopped by SIGTERM (killed by signal 15); re-run the sweep "
                                                       "to resume")
     assert not (d / "DONE").exists()
+
+
+# ------------------------------------------------------------------------------- seeds packed into one process
+def dry_run(capsys, *argv):
+    """The jobs a --dry-run prints, {name: sear.py command}, and all it printed."""
+    printed = capsys.readouterr().out
+    return {ln.split(": sear.py ")[0]: ln.split(": sear.py ")[1] for ln in printed.splitlines()
+            if ": sear.py " in ln}, printed
+
+
+def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_batch_runs_singly(tmp_path, capsys):
+    out = tmp_path / "sweeps"
+    argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "drq+drm", "--seeds", "1-5",
+            "--engine", "local", "--dry-run", "--", "--frames", "40"]
+    assert sweep.main(["--seeds-per-job", "2", *argv]) == 0
+    jobs, printed = dry_run(capsys)
+    key = next(iter(jobs)).rsplit("__", 1)[1]
+    drq = {n: c for n, c in jobs.items() if n.startswith("walker-walk__drq__")}
+    assert drq == {f"walker-walk__drq__{name}__{key}":
+                   f"--env walker-walk --method drq --drop-inapplicable {flag} --frames 40"
+                   for name, flag in (("seeds1-2", "--seeds 1-2"), ("seeds3-4", "--seeds 3-4"), ("5", "--seed 5"))}
+    drm = [n for n in jobs if "drq+drm" in n]
+    assert len(drm) == 5 and all("--seed " in jobs[n] and "--drm" in jobs[n] for n in drm)  # one process a seed
+    assert printed.count("packing: drq+drm runs one seed per job: --seeds does not take --drm") == 1
+    assert "10 to run in 8 processes (" in printed and "; 2 seeds per job (--seeds-per-job)" in printed
+    assert "x 2 seeds a job; --mem-gb sets it" in line(printed, "memory: ")
+    assert not out.exists()
+
+    # Without a GPU the default is one seed a job, as before.
+    assert sweep.main(argv) == 0
+    jobs, printed = dry_run(capsys)
+    assert len(jobs) == 10 and all("--seed " in c for c in jobs.values())
+    assert "1 seed per job (no GPU: one process per seed uses the cores as well; --seeds-per-job packs them)" \
+        in line(printed, "sweep custom: ")
+
+    # Run again: a seed that ran alone stays alone, a seed of a pack stays in it; only the others are packed.
+    (out / "custom" / f"walker-walk__drq__1__{key}" / "run" / "a-single-run").mkdir(parents=True)
+    for seed in (4, 5):
+        (out / "custom" / f"walker-walk__drq__{seed}__{key}").mkdir()
+        sweep.write_json(str(out / "custom" / f"walker-walk__drq__{seed}__{key}" / "pack.json"),
+                         {"pack": f"walker-walk__drq__seeds4-5__{key}", "seeds": [4, 5], "seed": seed})
+    assert sweep.main(["--seeds-per-job", "3", *argv]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs if n.startswith("walker-walk__drq__")] == ["1", "seeds2-3", "seeds4-5"]
+
+
+def test_the_default_seeds_per_job_comes_from_the_gpus_memory_here_and_is_4_on_slurm(tmp_path, monkeypatch, capsys):
+    import types
+    import torch
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)  # one 40 GB GPU
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda i: types.SimpleNamespace(total_memory=40 * 2**30))
+    monkeypatch.setattr(sweep, "local_memory_gb", lambda: 256.0)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    argv = ["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--methods", "sear", "--seeds", "1-5",
+            "--dry-run"]
+    assert sweep.main([*argv, "--engine", "local"]) == 0  # a default run: 8.2 GB + 25% a seed
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-3", "seeds4-5"]
+    assert line(printed, "sweep custom: ").endswith(
+        "; 3 seeds per job (as many as a GPU's 40 GB and this machine's 256 GB hold at 10.3 GB a seed, at most 16; "
+        "--seeds-per-job sets it)")
+    assert "(local, 1 at a time" in printed  # the packed job fills its GPU
+    assert line(printed, "memory: ").startswith("memory: 31 GB per job")
+
+    fake_slurm(tmp_path, monkeypatch)  # GPUs whose memory the submitting machine cannot see
+    assert sweep.main([*argv, "--engine", "slurm"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-4", "5"]
+    assert line(printed, "sweep custom: ").endswith(
+        "; 4 seeds per job (the GPUs' memory is not visible at submission, so a conservative default; "
+        "--seeds-per-job sets it)")
+    (tmp_path / "small").mkdir()
+    fake_slurm(tmp_path / "small", monkeypatch, sinfo="gpu*|gpu:1|8|32000\n")  # nodes of 31 GB: 3 seeds
+    assert sweep.main([*argv, "--engine", "slurm", "--name", "small"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-3", "seeds4-5"]
+    assert "; a node of the default partition holds 3 at 10.3 GB a seed;" in line(printed, "sweep small: ")
+
+
+def packed_args(out, *extra):
+    return ["--envs", "walker-walk", "--methods", "drq", "--seeds", "1-2", "--out", str(out), "--engine", "local",
+            *extra, "--", *TINY]
+
+
+def sear_pid(marker: str) -> int | None:
+    """The pid of the sear.py process whose command line holds `marker`."""
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            cmd = (Path("/proc") / pid / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(part.endswith(b"sear.py") for part in cmd) and marker.encode() in b" ".join(cmd):
+            return int(pid)
+    return None
+
+
+def test_a_packed_sweep_stopped_by_sigterm_resumes_its_group_and_finishes(tmp_path, capsys):
+    """Two seeds in one process; SIGTERM after their first snapshots: both seeds interrupted; the sweep
+    run again (now without --seeds-per-job) resumes the group folder; --status and --report read each
+    seed's run; a third run has nothing to do."""
+    out = tmp_path / "sweeps"
+    folder = out / "custom"
+    with sweep_process(tmp_path, packed_args(out, "--seeds-per-job", "2")) as p:
+        wait_for_files(p, folder, "*__seeds1-2__*/run/*/*/snapshot.pt", count=2)
+        # the group stops at its next episode end, every seed's snapshot kept
+        os.kill(sear_pid("--seeds 1-2 --frames 60"), signal.SIGTERM)
+        assert p.wait(timeout=120) == 1
+    assert "0 of 2 jobs finished; 2 failed" in (tmp_path / "first.log").read_text()
+    assert sweep.main(["--out", str(out), "--status"]) == 0
+    rows = [re.split(r"\s{2,}", ln) for ln in capsys.readouterr().out.splitlines()[1:-1]]
+    assert [(r[0].split("__")[2], r[1], r[3].split(" (")[0]) for r in rows] == [
+        ("1", "interrupted", "stopped by SIGTERM"), ("2", "interrupted", "stopped by SIGTERM")]
+
+    assert sweep.main(packed_args(out)) == 0
+    printed = capsys.readouterr().out
+    assert "0 done, 0 running elsewhere, 2 to run in 1 process (" in printed and "\n2 of 2 jobs finished\n" in printed
+    (pack,) = folder.glob("walker-walk__drq__seeds1-2__*")
+    (group,) = (pack / "run").iterdir()
+    assert f"--resume {group} " in (pack / "stdout.log").read_text().split("=== attempt 2 ")[1].splitlines()[0]
+    for seed in (1, 2):
+        (d,) = folder.glob(f"walker-walk__drq__{seed}__*")
+        (run,) = sweep.run_dirs(str(d))
+        assert Path(run).parent == group and (d / "DONE").exists()
+        frames = column(Path(run) / "eval.csv", "frame")  # an evaluation SIGTERM cut short is redone later
+        assert frames == sorted(set(frames)) and frames[0] == 0 and frames[-1] == 60  # none twice
+        assert json.loads((d / "pack.json").read_text()) == {"pack": pack.name, "seeds": [1, 2], "seed": seed}
+    assert "| drq | 2 seeds x 1 task | 60 |" in (folder / "report.md").read_text()
+    assert sweep.main(["--out", str(out), "--status"]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert table[-1] == "2 jobs: 2 done" and all(" 60/60" in ln for ln in table[1:-1])
+    assert sweep.main(["--out", str(out), "--report"]) == 0
+    assert "2 of 2 jobs finished" in capsys.readouterr().out
+    assert sweep.main(packed_args(out, "--seeds-per-job", "2")) == 0
+    assert "2 done, 0 running elsewhere, 0 to run" in capsys.readouterr().out
+    assert attempts(pack) == 2
+
+
+def test_a_pack_takes_every_seeds_lock_and_writes_every_seeds_status(tmp_path):
+    script = tmp_path / "record.py"
+    script.write_text(RECORDS_ITS_ARGS)
+    sweep_dir = tmp_path / "sweeps" / "s"
+    seeds = [sweep_dir / f"walker-walk__drq__{k}__abcd1234" for k in (1, 2)]
+    pack = sweep_dir / "walker-walk__drq__seeds1-2__abcd1234"
+    for d in (*seeds, pack):
+        d.mkdir(parents=True)
+    job = sweep.PackJob(str(pack), [str(d) for d in seeds], ["--env", "walker-walk", "--seeds", "1-2"],
+                        ["--device", "auto"], 3, script=str(script))
+    sweep.write_json(str(seeds[1] / "lock"), sweep.whoami())  # seed 2 runs elsewhere
+    assert job().startswith(f"skipped: already running (pid {os.getpid()} on ")
+    assert not (seeds[0] / "lock").exists() and calls(tmp_path) == []  # seed 1's lock given back
+    (seeds[1] / "lock").unlink()
+
+    group = pack / "run" / "walker-walk__drq__seeds1-2__20260101-000000"  # died before its snapshots
+    (group / "walker-walk__drq__1__x").mkdir(parents=True)
+    sweep.write_json(str(group / "group.json"), {"seeds": [1, 2], "runs": {"1": "walker-walk__drq__1__x"}})
+    assert job() == "done"
+    assert calls(tmp_path) == [["3", "--env", "walker-walk", "--seeds", "1-2", "--run-root", str(pack / "run")]]
+    assert (tmp_path / "sweeps" / "s.aside" / pack.name / group.name / "group.json").exists() and not group.exists()
+    assert all((d / "DONE").exists() and sweep.job_state(str(d)) == ("done", "") for d in seeds)
+    assert not any((d / "lock").exists() for d in seeds)
+
+    for d in seeds:
+        (d / "DONE").unlink()
+    script.write_text(FAILS_ON_CUP.replace('"cup-catch" in sys.argv', "True"))
+    assert job() == "failed: exit code 1: RuntimeError: the simulator exploded"
+    assert {sweep.job_state(str(d)) for d in (*seeds, pack)} == {
+        ("failed", "exit code 1: RuntimeError: the simulator exploded")}
 
 
 # ------------------------------------------------------------------------------- report
