@@ -476,13 +476,16 @@ def loop(members, group, pool, cfg, run, parts):
     while frame < cfg.frames:
         if all(not m.counters.mid_episode for m in members):
             members[0].rundir.safe_point()  # a first SIGTERM stops the group here, every seed between episodes
+            if parts.eval_due(frame, members[0].counters.last_eval_frame, cfg.eval_every):
+                evaluate_group(members, pool, cfg, parts.Episode, progress)
+                members[0].rundir.safe_point()  # after an evaluation a SIGTERM cut short: redone on resume
         for i, m in enumerate(members):
             if not m.counters.mid_episode:
                 m.counters.mid_episode = True
                 m.obs, _ = pool.envs[i]["train"].reset(seed=experiment.episode_seed(m.cfg.seed, m.counters.episode))
                 m.buffer.add_first(m.obs)
                 m.ep = [0.0, 0, False]
-        if parts.eval_due(frame, members[0].counters.last_eval_frame, cfg.eval_every):
+        if parts.eval_due(frame, members[0].counters.last_eval_frame, cfg.eval_every):  # inside an episode
             evaluate_group(members, pool, cfg, parts.Episode, progress)
         actions = {i: m.agent.act(m.obs["pixels"], m.obs["mask"], m.counters.step, eval_mode=False)
                    for i, m in enumerate(members)}
@@ -517,6 +520,7 @@ def loop(members, group, pool, cfg, run, parts):
             clock = time.monotonic()
     if members[0].counters.last_eval_frame != frame:  # the budget ends with an evaluation at its last frame
         evaluate_group(members, pool, cfg, parts.Episode, progress)
+        members[0].rundir.safe_point()  # cut short by a SIGTERM: the snapshot's resume evaluates again
 
 
 def evaluate_group(members, pool, cfg, Episode, progress):

@@ -155,6 +155,31 @@ def test_a_sigterm_stops_every_seed_at_an_episode_end_with_its_snapshot(tmp_path
     assert len(frames) == 1
 
 
+def test_a_sigterm_in_the_groups_evaluation_stops_there_and_the_resumed_group_evaluates_again(tmp_path):
+    """As a single run (tests/test_firstweek.py): a SIGTERM during the frame-0 evaluation stops the group when
+    the evaluation episode it lands in ends, every seed's snapshot at frame 0 and no eval.csv row; the resumed group
+    evaluates at frame 0 again."""
+    from tests.test_firstweek import LONG_EPISODES, Live
+    p = Live(["--run-root", tmp_path / "runs", "--env", "cartpole-balance", "--method", "sear", "--seeds", "1-2",
+              *LONG_EPISODES, "--max-episode-steps", "200", "--eval-episodes", "3"], tmp_path)
+    try:
+        p.wait_for(r"^eval 1/3 done")  # an evaluation episode takes seconds: the signal lands in the second
+        p.p.send_signal(signal.SIGTERM)
+        code, out, err = p.finish()
+    finally:
+        p.kill()
+    assert code == 143, err[-2000:]
+    assert "eval 3/3 done" not in out and "eval @ frame" not in out, out[-2000:]
+    seeds = seed_dirs(group_dir(tmp_path))
+    for d in seeds.values():
+        assert torch.load(d / "snapshot.pt", weights_only=False)["counters"]["step"] == 0
+        assert not (d / "eval.csv").exists() or rows(d / "eval.csv") == []
+    r = resume(group_dir(tmp_path), tmp_path, "--frames", "80")
+    assert r.returncode == 0, r.stderr[-2000:]
+    for d in seeds.values():
+        assert [row["frame"] for row in rows(d / "eval.csv")] == ["0", "80"]
+
+
 def test_envs_in_this_process_when_asked(tmp_path, monkeypatch):
     monkeypatch.setenv(group.WORKERS, "serial")
     r = run([*GROUP, "--frames", "24"], tmp_path)
