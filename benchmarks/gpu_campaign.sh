@@ -341,7 +341,7 @@ fi
   echo
   for job in "${jobs[@]}" "${ojobs[@]}"; do echo "$job ${status_of[$job]:-not_started} ${wall_of[$job]:-}"; done > "$out/logs/status.txt"
   "$py" - "$out" "$frames" <<'EOF'
-import csv, glob, json, sys
+import csv, glob, json, os, sys
 out, frames = sys.argv[1], int(sys.argv[2])
 print("| run | status | frames reached | wall time | frames/s |\n|---|---|---|---|---|")
 for line in open(f"{out}/logs/status.txt"):
@@ -350,10 +350,13 @@ for line in open(f"{out}/logs/status.txt"):
         status, f"FAILED (exit {status}: logs/{job}.log)")
     seconds = int(wall[0]) if wall else 0
     # a run: runs/<job>/<run dir>; a group: runs/<job>/<group dir>/<each seed's run dir>, frames/s of all of them
-    # the official code's run: runs/official-<seed>/train.csv, as hydra's run dir
-    paths = sorted(glob.glob(f"{out}/runs/{job}/train.csv") or glob.glob(f"{out}/runs/{job}/*/train.csv")
-                   or glob.glob(f"{out}/runs/{job}/*/*/train.csv"))
+    paths = sorted(glob.glob(f"{out}/runs/{job}/*/train.csv") or glob.glob(f"{out}/runs/{job}/*/*/train.csv"))
     reached = [max((int(r["frame"]) for r in csv.DictReader(open(p))), default=0) for p in paths] or [0]
+    if job.startswith("official-"):  # its hydra run dir; it logs training at episode ends (1000 frames), and its
+        # evaluations at their frames: the last of either is how far it got
+        paths = [p for p in (f"{out}/runs/{job}/train.csv", f"{out}/runs/{job}/eval.csv") if os.path.exists(p)]
+        reached = [max((int(float(r["frame"])) for p in paths for r in csv.DictReader(open(p))), default=0)]
+        paths = paths[:1]  # one seed
     if status == "0" and min(reached) < frames:
         said = f"ended below F (logs/{job}.log)"
     seeds = f" ({len(paths)} seeds)" if len(paths) > 1 else ""

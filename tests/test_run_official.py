@@ -158,6 +158,7 @@ def test_the_campaign_runs_the_official_seeds_after_ours(tmp_path):
     assert "1 at a time" in summary and "num_train_frames=202 eval_every_frames=100 num_eval_episodes=2" in summary
     assert f"--official {out}/runs/official-*" in summary  # the rule read them
     assert (out / "runs" / "official-1" / "eval.csv").is_file()  # the first starts when our group has ended
+    assert "FAILED" not in summary and "ended below F" not in summary  # how far it got: its evaluations too
     for seed in (1, 2):
         unstarted = f"| official-{seed} | not started (budget) |" in summary
         named = any(line.startswith("official seeds not started") and f" {seed}" in line for line in summary.splitlines())
