@@ -7,11 +7,12 @@ Runs DRQV2_CHECKOUT/train.py (facebookresearch/drqv2, c0c650b; never copied here
 hydra overrides after `--`, as `python train.py OVERRIDES` would, after adapting today's stack to it from
 outside. Nothing the runs compute changes; each adaptation, and why:
 
-- Modules the runs never use with save_video=false save_train_video=false use_tb=false, put in sys.modules
-  where missing: `torchvision` always (logger.py imports it and uses none of it; a torchvision built for
-  another torch fails at import); `cv2` (video.py draws frames with it only when a video is recorded: the
-  stub raises on any use); termcolor's `colored` (the console's colours only: it returns the text as is);
-  `torch.utils.tensorboard`'s SummaryWriter (use_tb=true only: the stub raises when made).
+- Stand-ins in sys.modules for modules the runs never use with save_video=false save_train_video=false
+  use_tb=false: `torchvision` always (logger.py imports it and uses none of it; a torchvision built for
+  another torch fails at import); where not installed, `cv2` (video.py draws frames with it only when a
+  video is recorded: the stand-in raises on any use), termcolor's `colored` (the console's colours only: it
+  returns the text as is) and `torch.utils.tensorboard`'s SummaryWriter (use_tb=true only: it raises when
+  made).
 - The action spec's dtype. dm_control's action_scale.Wrapper reports np.result_type(its bounds, the wrapped
   spec's dtype): float32 under NumPy 1 (0-d bounds cast by value), float64 under NumPy 2, and the replay
   storage then asserts that the agent's float32 actions are float64. dmc.py's wrapper is given a subclass

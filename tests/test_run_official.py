@@ -111,6 +111,9 @@ def test_the_action_spec_is_the_wrapped_dtype_and_the_actions_unchanged():
 
 def test_the_worker_seed_is_the_int_of_the_numpy_one():
     """random.seed(numpy uint32) fails from Python 3.11; the adapted seed() gives the state of its int."""
+    if sys.version_info >= (3, 11):
+        with pytest.raises(TypeError):
+            random.seed(np.uint32(12345))
     replay_buffer = types.SimpleNamespace(random=random)
     run_official.int_worker_seed(replay_buffer)
     replay_buffer.random.seed(np.uint32(12345))
