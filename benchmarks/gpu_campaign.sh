@@ -10,8 +10,9 @@
 #
 #   benchmarks/gpu_campaign.sh [--first-seed K] [--seeds N] [--frames F] [--budget-minutes M] [--parallel P]
 #                              [--sear] [--processes] [--out DIR] [--copy-to DIR] [--render-quality paper|fast]
-#                              [--eval-every FRAMES]
+#                              [--eval-every FRAMES] [--official DRQV2_CHECKOUT]
 #   benchmarks/gpu_campaign.sh --seeds 16   the campaign in one command: all 16 seeds in one sear.py --seeds group
+#   benchmarks/gpu_campaign.sh --seeds 16 --official .drqv2   and the official DrQ-v2 code's 16 seeds after them
 #   benchmarks/gpu_campaign.sh --quick     2 seeds of tiny networks for 200 frames on the CPU (CI, so it cannot rot)
 #
 # Two or more seeds run as ONE group (sear.py --seeds K-L, group.py: their networks updated as one batched
@@ -36,6 +37,22 @@
 # names the seeds that did not reach F, and the rule leaves them out. Seeds are started while the time left
 # exceeds the wall time of the slowest seed finished so far. Nothing outlives the script: an exit, Ctrl-C or
 # SIGTERM stops every run it started.
+# --official DIR (a checkout of facebookresearch/drqv2): when our runs have ended, the official code's train.py on
+# the same seeds (benchmarks/run_official.py: the code unmodified, today's stack adapted from outside, TF32 off), P
+# at a time while the budget lasts (the same start rule), each as runs/official-<seed>/ (its hydra run dir); the
+# rule reads them as one more method, "drqv2 official". After ours, not beside them: they would share the cores
+# and the GPU with our group, whose speed the budget was sized by. Their settings are the released config's but
+# for the budget and evaluations, ours: num_train_frames F + 2 (so that it evaluates at F), eval_every_frames,
+# num_eval_episodes; it renders with physics.render at 84x84 whatever --render-quality says (it has no 'fast').
+# The budget's SIGTERM ends a run at once (it has no safe stop): a cut run's eval.csv rows stand. The summary
+# names the official seeds the budget left unstarted. --quick with --official: a 6-minute budget by default.
+# The GPU machine has no package index: the checkout travels as an ignored folder, and hydra's packages (pure
+# Python but PyYAML, whose wheel must be for the GPU machine's Python) as wheels built where there is an index:
+#   git clone https://github.com/facebookresearch/drqv2 .drqv2 && git -C .drqv2 checkout c0c650b
+#   python -m pip wheel --no-deps -w .wheels hydra-core==1.3.2 omegaconf==2.3.0 antlr4-python3-runtime==4.9.3 \
+#       hydra-submitit-launcher==1.2.0 PyYAML
+#   printf '.drqv2/\n.wheels/\n' >> .git/info/exclude              # neither is committed
+#   then on the GPU machine: python -m pip install --no-deps --no-index .wheels/*.whl
 # Writes DIR (default runs/gpu_campaign-<UTC time>[-quick]; never an existing one): summary.md, results.csv,
 # published_curve.png, runs/<method>-<seed>/ (the run dirs), logs/. Exit status: 0 when every run ended as
 # planned (F reached or stopped by the budget) and the rule ran, 1 otherwise, 2 for bad arguments.
@@ -43,28 +60,30 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 die() { echo "gpu_campaign.sh: error: $*" >&2; exit 2; }
 same=() quick=0 first=1 seeds="" frames="" budget="" parallel=4 sear=0 out="" copy_to="" quality="" eval_every=""
-processes=0
+processes=0 official=""
 while [ $# -gt 0 ]; do
   case $1 in
     --quick) quick=1 same+=("$1") ;;
     --sear) sear=1 same+=("$1") ;;
     --processes) processes=1 same+=("$1") ;;
-    --first-seed|--seeds|--frames|--budget-minutes|--parallel|--out|--copy-to|--render-quality|--eval-every)
+    --first-seed|--seeds|--frames|--budget-minutes|--parallel|--out|--copy-to|--render-quality|--eval-every|--official)
       [ $# -ge 2 ] || die "$1 needs a value"
       case $1 in
         --first-seed) first=$2 ;; --seeds) seeds=$2 ;; --frames) frames=$2 ;; --budget-minutes) budget=$2 ;;
         --parallel) parallel=$2 ;; --out) out=$2 ;; --copy-to) copy_to=$2 ;; --render-quality) quality=$2 ;;
-        --eval-every) eval_every=$2 ;;
+        --eval-every) eval_every=$2 ;; --official) official=$2 ;;
       esac
       case $1 in --first-seed|--out|--copy-to) ;; *) same+=("$1" "$2") ;; esac  # what the next part repeats
       shift ;;
     *) die "unknown argument $1 (use --quick, --first-seed K, --seeds N, --frames F, --budget-minutes M," \
-           "--parallel P, --sear, --processes, --out DIR, --copy-to DIR, --render-quality paper|fast, --eval-every FRAMES)" ;;
+           "--parallel P, --sear, --processes, --out DIR, --copy-to DIR, --render-quality paper|fast, --eval-every FRAMES," \
+           "--official DRQV2_CHECKOUT)" ;;
   esac
   shift
 done
 if [ $quick = 1 ]; then
-  seeds=${seeds:-2} frames=${frames:-200} budget=${budget:-3} quality=${quality:-fast}
+  # the official code's evaluations are 500 agent steps an episode, rendered at 84x84, even here
+  seeds=${seeds:-2} frames=${frames:-200} budget=${budget:-$([ -n "$official" ] && echo 6 || echo 3)} quality=${quality:-fast}
   [[ $frames =~ ^[1-9][0-9]*$ ]] && eval_every=${eval_every:-$(( frames > 1 ? frames / 2 : 1 ))}
 else
   seeds=${seeds:-4} frames=${frames:-40000} budget=${budget:-9} eval_every=${eval_every:-20000} quality=${quality:-paper}
@@ -79,6 +98,9 @@ fi
 [ "$quality" = paper ] || [ "$quality" = fast ] || die "--render-quality must be paper or fast, got '$quality'"
 py=${PYTHON:-$(command -v python || command -v python3)}
 [ -n "$py" ] || die "no python on PATH (set PYTHON)"
+if [ -n "$official" ]; then  # the checkout and hydra, before anything runs (run_official.py's one-line error)
+  why=$("$py" benchmarks/run_official.py --official "$official" --check 2>&1) || die "${why#run_official.py: error: }"
+fi
 out=${out:-runs/gpu_campaign-$(date -u +%Y%m%d-%H%M%S)$([ $quick = 1 ] && echo -quick)}
 [ -e "$out" ] && die "$out exists; give another --out"
 last=$((first + seeds - 1))
@@ -177,30 +199,72 @@ if [ "$device" = cuda ]; then
   fi
 fi
 threads=$(( cores / slots ))  # the cores shared out: 4 runs of 4 threads on 16 cores is what was measured
+# The official code's seeds (--official): the same seeds, after ours (they would share the cores and the GPU with
+# our group and change its speed, which the budget was sized by), P at a time within what is left.
+ojobs=()
+[ -n "$official" ] && for s in $(seq "$first" "$last"); do ojobs+=("official-$s"); done
+oslots=$(( seeds < cores ? seeds : cores ))
+[ "$parallel" -lt "$oslots" ] && oslots=$parallel
+[ "$device" = cuda ] && [ "$by_memory" -lt "$oslots" ] && oslots=$by_memory
+othreads=$(( cores / oslots ))
 # a group: its seeds' env workers take most cores, its learner a few (torch threads); its GPU memory grows with them
 [ $group = 1 ] && threads=$(( cores > 8 ? 4 : cores ))
 
 # The rung's command (EXPERIMENTS.md, Rung PC), without --save-buffer: no run here is resumed.
+eval_episodes=$([ $quick = 1 ] && echo 2 || echo 10)
 rung=(--env cartpole-balance_sparse --frames "$frames" --action-repeat 2 --frame-stack 3 --batch-size 256 --lr 1e-4
       --nstep 3 --discount 0.99 --std-start 1.0 --std-end 0.1 --std-steps 100000 --std-clip 0.3 --seed-frames 4000
       --exploration-steps 2000 --update-every 2 --critic-tau 0.01 --feature-dim 50 --hidden-dim 1024
-      --replay-size 1000000 --eval-every "$eval_every" --eval-episodes 10 --precision fp32
+      --replay-size 1000000 --eval-every "$eval_every" --eval-episodes "$eval_episodes" --precision fp32
       --render-quality "$quality" --threads "$threads" --device "$device")
 [ $quick = 1 ] && rung+=(--seed-frames 80 --exploration-steps 40 --max-episode-steps 25 --batch-size 8
-                         --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000 --eval-episodes 2
+                         --feature-dim 16 --hidden-dim 32 --latent-dim 64 --replay-size 1000
                          --drop-inapplicable)  # one set for drq and sear: drq has no --latent-dim
 # a group's rings: every step of F frames at action repeat 2, and a reset slot per episode (1000 steps a most)
 [ $group = 1 ] && [ $quick = 0 ] && rung+=(--replay-size $(( frames / 2 + frames / 500 + 100 )))
+# The official code's run of a seed: its config as released (cartpole_balance_sparse: cfgs/task/easy.yaml) but for
+# the budget and the evaluations, as ours: F + 2 frames keeps its evaluation at F (it stops before step F / 2 + 1).
+# It renders as written (physics.render, 84x84: --render-quality fast does not apply to it); TF32 off.
+official_run=(task@_global_=cartpole_balance_sparse "device=$device" save_video=false use_tb=false
+              "num_train_frames=$((frames + 2))" "eval_every_frames=$eval_every" "num_eval_episodes=$eval_episodes")
 
-slowest=0
-next=0
+ours_running() {  # whether a run of ours is still going (the official code's wait for them)
+  local job
+  for job in "${!pid_of[@]}"; do [[ $job == official-* ]] || return 0; done
+  return 1
+}
+start_runs() {  # ours while the time left ($1) exceeds the slowest run of ours so far; then the official code's
+  local job who
+  while [ ${#pid_of[@]} -lt "$slots" ] && [ $next -lt ${#jobs[@]} ] && [ "$1" -gt $slowest ]; do
+    job=${jobs[$next]}
+    next=$((next + 1))
+    if [ $group = 1 ]; then who=(--seeds "$first-$last"); else who=(--seed "${job##*-}"); fi
+    "$py" sear.py "${rung[@]}" --method "${job%-*}" "${who[@]}" --run-root "$out/runs/$job" \
+      > "$out/logs/$job.log" 2>&1 &
+    pid_of[$job]=$!
+    began_of[$job]=$SECONDS
+  done
+  [ $next -lt ${#jobs[@]} ] || ours_running && return
+  while [ ${#pid_of[@]} -lt "$oslots" ] && [ $onext -lt ${#ojobs[@]} ] && [ "$1" -gt $oslowest ]; do
+    job=${ojobs[$onext]}
+    onext=$((onext + 1))
+    OMP_NUM_THREADS=$othreads "$py" benchmarks/run_official.py --official "$official" -- "${official_run[@]}" \
+      "seed=${job#official-}" "hydra.run.dir='$out/runs/$job'" > "$out/logs/$job.log" 2>&1 &
+    pid_of[$job]=$!
+    began_of[$job]=$SECONDS
+  done
+}
+
+slowest=0 oslowest=0  # the wall time of the slowest run finished so far: ours, the official code's
+next=0 onext=0
 while :; do
   for job in "${!pid_of[@]}"; do  # reap the runs that ended
     kill -0 "${pid_of[$job]}" 2>/dev/null && continue
     wait "${pid_of[$job]}"
     status_of[$job]=$?
     wall_of[$job]=$((SECONDS - began_of[$job]))
-    [ "${wall_of[$job]}" -gt $slowest ] && slowest=${wall_of[$job]}
+    if [[ $job == official-* ]]; then [ "${wall_of[$job]}" -gt $oslowest ] && oslowest=${wall_of[$job]}
+    else [ "${wall_of[$job]}" -gt $slowest ] && slowest=${wall_of[$job]}; fi
     unset "pid_of[$job]"
   done
   left=$((stop_at - SECONDS))
@@ -215,15 +279,7 @@ while :; do
     done
     break
   fi
-  while [ ${#pid_of[@]} -lt "$slots" ] && [ $next -lt ${#jobs[@]} ] && [ $left -gt $slowest ]; do
-    job=${jobs[$next]}
-    next=$((next + 1))
-    if [ $group = 1 ]; then who=(--seeds "$first-$last"); else who=(--seed "${job##*-}"); fi
-    "$py" sear.py "${rung[@]}" --method "${job%-*}" "${who[@]}" --run-root "$out/runs/$job" \
-      > "$out/logs/$job.log" 2>&1 &
-    pid_of[$job]=$!
-    began_of[$job]=$SECONDS
-  done
+  start_runs $left
   [ ${#pid_of[@]} = 0 ] && break
   sleep 1
 done
@@ -235,10 +291,20 @@ methods=(drq)
 rule=("$py" benchmarks/published_curve.py "$out/runs" --methods "${methods[@]}" --seeds $(seq "$first" "$last")
       --frames $(seq 0 "$eval_every" "$frames") --out "$out/published_curve.png" --results "$out/results.csv" --record)
 [ $quick = 1 ] && rule+=(--rule-frames "$eval_every" $((2 * eval_every)))  # a reduced run: the pipeline
+# The official code's runs, one more method: those that made their run dir (hydra's .hydra/config.yaml), as a glob
+# where every one did (a cut run's eval.csv rows stand), else by name.
+odirs=() oall=1
+for d in "$out"/runs/official-*/; do
+  [ -d "$d" ] || continue
+  if [ -f "$d.hydra/config.yaml" ]; then odirs+=("${d%/}"); else oall=0; fi
+done
+if [ ${#odirs[@]} -gt 0 ]; then
+  if [ $oall = 1 ]; then rule+=(--official "$out/runs/official-*"); else rule+=(--official "${odirs[@]}"); fi
+fi
 match_seeds=$("$py" -c 'import sys; sys.path.insert(0, "benchmarks"); import published_curve as p; print(p.MATCH_SEEDS)' \
               2>/dev/null || echo 16)  # the seeds the rule needs for MATCH
 rule_status=0
-if [ -n "$(find "$out/runs" -name config.json -print -quit 2>/dev/null)" ]; then
+if [ -n "$(find "$out/runs" -name config.json -print -quit 2>/dev/null)" ] || [ ${#odirs[@]} -gt 0 ]; then
   "${rule[@]}" > "$out/logs/published_curve.log" 2>&1
   rule_status=$?
 else  # every run stopped before it made its run dir
@@ -262,10 +328,20 @@ fi
        [ "$device" = cuda ] && echo ", GPU memory at $gib_per_run GiB per run"))"; fi
   echo "seeds $first-$last of ${methods[*]} to $frames frames (evaluations every $eval_every), render $quality;" \
        "$how; budget $budget_s s, runs stopped from $((stop_at - start)) s"
+  if [ -n "$official" ]; then
+    echo
+    echo "then the official code on seeds $first-$last (facebookresearch/drqv2" \
+         "$(git -C "$official" rev-parse --short HEAD 2>/dev/null || echo "of unknown commit"), its train.py unmodified" \
+         "through benchmarks/run_official.py, TF32 off), $oslots at a time (torch threads: $othreads each) after ours:" \
+         "${official_run[*]}; rendered as written (physics.render, 84x84), whatever --render-quality says"
+    unstarted=()
+    for job in "${ojobs[@]}"; do [ -z "${status_of[$job]:-}" ] && unstarted+=("${job#official-}"); done
+    [ ${#unstarted[@]} -gt 0 ] && echo "official seeds not started (the budget was spent first): ${unstarted[*]}"
+  fi
   echo
-  for job in "${jobs[@]}"; do echo "$job ${status_of[$job]:-not_started} ${wall_of[$job]:-}"; done > "$out/logs/status.txt"
+  for job in "${jobs[@]}" "${ojobs[@]}"; do echo "$job ${status_of[$job]:-not_started} ${wall_of[$job]:-}"; done > "$out/logs/status.txt"
   "$py" - "$out" "$frames" <<'EOF'
-import csv, glob, json, sys
+import csv, glob, json, os, sys
 out, frames = sys.argv[1], int(sys.argv[2])
 print("| run | status | frames reached | wall time | frames/s |\n|---|---|---|---|---|")
 for line in open(f"{out}/logs/status.txt"):
@@ -276,6 +352,11 @@ for line in open(f"{out}/logs/status.txt"):
     # a run: runs/<job>/<run dir>; a group: runs/<job>/<group dir>/<each seed's run dir>, frames/s of all of them
     paths = sorted(glob.glob(f"{out}/runs/{job}/*/train.csv") or glob.glob(f"{out}/runs/{job}/*/*/train.csv"))
     reached = [max((int(r["frame"]) for r in csv.DictReader(open(p))), default=0) for p in paths] or [0]
+    if job.startswith("official-"):  # its hydra run dir; it logs training at episode ends (1000 frames), and its
+        # evaluations at their frames: the last of either is how far it got
+        paths = [p for p in (f"{out}/runs/{job}/train.csv", f"{out}/runs/{job}/eval.csv") if os.path.exists(p)]
+        reached = [max((int(float(r["frame"])) for p in paths for r in csv.DictReader(open(p))), default=0)]
+        paths = paths[:1]  # one seed
     if status == "0" and min(reached) < frames:
         said = f"ended below F (logs/{job}.log)"
     seeds = f" ({len(paths)} seeds)" if len(paths) > 1 else ""
@@ -320,7 +401,7 @@ if [ -n "$copy_to" ]; then  # the part's small files, for a machine whose disk d
   echo "copied to $copy_to: $(cd "$copy_to" && ls -d "${part}"_* | tr '\n' ' ')"
 fi
 failed=$rule_status
-for job in "${jobs[@]}"; do
+for job in "${jobs[@]}" "${ojobs[@]}"; do
   case ${status_of[$job]:-not_started} in 0|stopped|not_started) ;; *) failed=1 ;; esac
 done
 [ "$failed" = 0 ]
