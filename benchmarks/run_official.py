@@ -53,9 +53,16 @@ class OfficialError(Exception):
     """Bad input: one line on stderr, exit code 2."""
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """A bad flag is one line, as every other bad input (cli's parser is not imported before the checkout's)."""
+
+    def error(self, message):
+        raise OfficialError(message)
+
+
 def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     """(our arguments, the hydra overrides after `--`)."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = OneLineParser(description=__doc__.split("\n\n")[0],
                                 usage="run_official.py --official DIR [--tf32] [--check] -- HYDRA_OVERRIDES...")
     p.add_argument("--official", required=True, metavar="DIR", help="a checkout of facebookresearch/drqv2")
     p.add_argument("--check", action="store_true", help="check the checkout and hydra, run nothing (exit 0 or 2)")
@@ -164,8 +171,8 @@ def adapt(checkout: str, tf32: bool):
 
 
 def main(argv=None) -> int:
-    args, overrides = parse(sys.argv[1:] if argv is None else list(argv))
     try:
+        args, overrides = parse(sys.argv[1:] if argv is None else list(argv))
         train = check(args.official)
     except OfficialError as e:
         print(f"run_official.py: error: {e}", file=sys.stderr)

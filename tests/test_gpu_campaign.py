@@ -1,6 +1,7 @@
 """benchmarks/gpu_campaign.sh on the CPU, reduced: bad arguments, the budget's stop, and no run left behind.
 CI runs the whole --quick form (.ci/run)."""
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -78,7 +79,9 @@ def test_the_budget_stops_the_runs_and_the_summary_says_so(tmp_path, campaign):
     assert summary.strip() in stdout
     assert "| drq-group (2 seeds) | stopped by the budget |" in summary  # two seeds: one sear.py --seeds group
     assert "one sear.py --seeds 1-2 group per method" in summary
-    assert summary.strip().splitlines()[-1].endswith("budget 45 s: within")
+    # the runs stop inside the budget; the rule after them may overrun it on a loaded machine (python's start)
+    trained = re.search(r"\(training (\d+) s\), budget 45 s: (within|OVER)$", summary.strip().splitlines()[-1])
+    assert trained and int(trained.group(1)) <= 45, summary.strip().splitlines()[-1]
     assert runs_of(out) == []
 
 

@@ -63,6 +63,12 @@ def test_a_missing_checkout_is_one_line(tmp_path):
     assert p.stderr.startswith("run_official.py: error: --official ") and "not a checkout of facebookresearch/drqv2" in p.stderr
 
 
+@pytest.mark.parametrize("args", [[], ["--official", "x", "--bogus"]])
+def test_a_bad_flag_is_one_line(args):
+    p = run(args)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and p.stderr.startswith("run_official.py: error: "), p.stderr
+
+
 def test_missing_hydra_is_one_line_naming_the_packages(tmp_path):
     p = run(["--official", fake_checkout(tmp_path / "drqv2"), "--check"], env=without_hydra(tmp_path))
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr, p.stderr
