@@ -1129,12 +1129,22 @@ class RunFiles:
                      + "): it will stop on a full disk before its end, its last snapshot standing")
 
     def save(self, payload: dict, buffer, frame: int):
-        """buffer.npz (with --save-buffer), then snapshot.pt; each write is atomic, and the
-        payload's buffer_t tells a resume whether a kill between the two left a buffer newer than
-        the snapshot."""
-        if self.run.save_buffer:
-            save_buffer(buffer, os.path.join(self.path, "buffer.npz"))
-        save_snapshot(self.path, payload)
+        """snapshot.pt, and with --save-buffer buffer.npz beside it. Each write is atomic, and the buffer
+        is written aside first and takes its place only after the snapshot has: a storage error in
+        either write leaves both of the last snapshot. The payload's buffer_t tells a resume whether a
+        kill between the two renames left them apart."""
+        if not self.run.save_buffer:
+            save_snapshot(self.path, payload)
+        else:
+            path = os.path.join(self.path, "buffer.npz")
+            try:
+                save_buffer(buffer, path + ".next")
+                save_snapshot(self.path, payload)
+                with storing(path):
+                    os.replace(path + ".next", path)
+            finally:
+                with contextlib.suppress(OSError):  # after the rename there is nothing left to remove
+                    os.remove(path + ".next")
         self.snapshot_frame = frame
 
     def restore_buffer(self, buffer):
@@ -1144,7 +1154,7 @@ class RunFiles:
         if not (os.path.exists(path) and state.get("buffer_saved")):
             print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
         elif saved_buffer_t(path) != state.get("buffer_t", saved_buffer_t(path)):
-            print("resume: buffer.npz is newer than snapshot.pt (killed between the two writes); "
+            print("resume: buffer.npz is not snapshot.pt's (killed between the two writes); "
                   "refilling")
         else:
             load_buffer(buffer, path)

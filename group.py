@@ -453,13 +453,17 @@ def write_group_file(group_dir, members):
 def stop_members(members, error, group_dir):
     """Ctrl-C, SIGTERM, a storage error or a value that is not finite: every seed's run dir does what it
     does for a single run (a snapshot between episodes, one line of what stands); one line for all."""
-    lines = []
+    lines, said = [], {}
     for m in members:
         try:
             with m.quiet():
                 m.rundir.stopped(type(error), error)
-        except (cli.Interrupted, cli.StorageError, cli.NonFinite) as said:
-            lines.append(str(said))
+        except (cli.Interrupted, cli.StorageError, cli.NonFinite) as e:
+            lines.append(str(e))
+            said[m.rundir.path] = e
+    if isinstance(error, (cli.StorageError, cli.NonFinite)) and said:  # the seed it happened to says what stands
+        path, e = next(((p, e) for p, e in said.items() if p and p in str(error)), next(iter(said.items())))
+        raise type(e)(str(e).replace(f"--resume {path}", f"--resume {group_dir}")) from None
     if isinstance(error, KeyboardInterrupt) and lines:
         cause, code = cli.stop_cause(error)
         frames = sorted({m.rundir.files.snapshot_frame for m in members}, key=lambda f: -1 if f is None else f)

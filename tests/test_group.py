@@ -4,6 +4,7 @@ one by one; refused configurations are one line."""
 import copy
 import json
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -82,11 +83,11 @@ def test_what_a_group_does_not_take_is_one_line(tmp_path, argv, says):
 GROUP = ["--env", "cartpole-balance", "--method", "sear", "--seeds", "1-2", "--save-buffer", *TINY, "--threads", "1"]
 
 
-def resume(path, cwd, *args):
+def resume(path, cwd, *args, **kwargs):
     """sear.py --resume PATH (no --run-root: the run's own stands)."""
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     return subprocess.run([sys.executable, str(ROOT / "sear.py"), "--resume", str(path), *args], capture_output=True,
-                          text=True, timeout=600, cwd=cwd, env=env)
+                          text=True, timeout=600, cwd=cwd, env=env, **kwargs)
 
 
 def group_dir(tmp_path):
@@ -101,7 +102,7 @@ def seed_dirs(path):
 
 def test_a_group_resumes_exactly_and_each_seed_is_an_ordinary_run(tmp_path):
     """80 frames in one go equal 48 and a --resume of the group's folder to 80, seed by seed (train.csv,
-    eval.csv, weights); the group's folder holds group.json and one ordinary run directory per seed, which
+    eval.csv, weights), a resume that a storage error stopped on the way included; the group's folder holds group.json and one ordinary run directory per seed, which
     plot.py reads; one seed's run directory resumes on its own as a single run."""
     straight, split = tmp_path / "straight", tmp_path / "split"
     for d in (straight, split):
@@ -110,6 +111,16 @@ def test_a_group_resumes_exactly_and_each_seed_is_an_ordinary_run(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "group: 2 seeds (1..2) of sear on cartpole-balance" in r.stdout and "envs in 2 worker processes" in r.stdout
     assert run([*GROUP, "--frames", "48"], split).returncode == 0
+    # a storage error on the way (a 1 MB file size limit: a seed's snapshot is 7 MB) is one line, the snapshots stand
+    before = {p: p.read_bytes() for p in group_dir(split).glob("*/snapshot.pt")}
+    limit = 1 << 20
+    r = resume(group_dir(split), split, "--frames", "64",
+               preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr[-2000:]
+    assert r.stderr.startswith("sear.py: error: cannot write ") and r.stderr.strip().endswith(
+        f"File too large (EFBIG); the last snapshot (frame 48) stands: fix that, then python sear.py --resume "
+        f"{group_dir(split)}"), r.stderr
+    assert {p: p.read_bytes() for p in group_dir(split).glob("*/snapshot.pt")} == before
     r = resume(group_dir(split), split, "--frames", "80")
     assert r.returncode == 0, r.stderr[-2000:]
     a, b = seed_dirs(group_dir(straight)), seed_dirs(group_dir(split))
