@@ -46,6 +46,10 @@ import runpy
 import sys
 import types
 
+# this project's cli (standard library only: no name the checkout's modules use), after the checkout's on the path
+sys.path.append(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import cli  # noqa: E402
+
 HYDRA_PACKAGES = "hydra-core omegaconf antlr4-python3-runtime PyYAML hydra-submitit-launcher"
 
 
@@ -53,16 +57,9 @@ class OfficialError(Exception):
     """Bad input: one line on stderr, exit code 2."""
 
 
-class OneLineParser(argparse.ArgumentParser):
-    """A bad flag is one line, as every other bad input (cli's parser is not imported before the checkout's)."""
-
-    def error(self, message):
-        raise OfficialError(message)
-
-
 def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     """(our arguments, the hydra overrides after `--`)."""
-    p = OneLineParser(description=__doc__.split("\n\n")[0],
+    p = cli.OneLineParser(description=__doc__.split("\n\n")[0],
                                 usage="run_official.py --official DIR [--tf32] [--check] -- HYDRA_OVERRIDES...")
     p.add_argument("--official", required=True, metavar="DIR", help="a checkout of facebookresearch/drqv2")
     p.add_argument("--check", action="store_true", help="check the checkout and hydra, run nothing (exit 0 or 2)")
@@ -165,8 +162,6 @@ def adapt(checkout: str, tf32: bool):
     float32_action_spec(dmc)
     int_worker_seed(replay_buffer)
     stand_in_launcher()
-    sys.path.append(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))  # after the checkout's
-    import cli  # noqa: E402  (this project's, for set_tf32; its train.py stays behind the checkout's)
     cli.set_tf32(tf32)
 
 
@@ -174,7 +169,7 @@ def main(argv=None) -> int:
     try:
         args, overrides = parse(sys.argv[1:] if argv is None else list(argv))
         train = check(args.official)
-    except OfficialError as e:
+    except (OfficialError, cli.ConfigError) as e:
         print(f"run_official.py: error: {e}", file=sys.stderr)
         return 2
     if args.check:

@@ -67,6 +67,9 @@ def pytest_configure(config):
                                        "tests/conftest.py)")
     if not hasattr(config, "workerinput"):  # not inside a pytest-xdist worker: its output is not shown
         config.pluginmanager.register(FileProgress(config), "sear-file-progress")
+    else:  # one of -n N workers: one torch thread each, as the sear.py runs the tests start
+        import torch
+        torch.set_num_threads(1)
 
 
 COLLECTED = pytest.StashKey[list]()   # every test collected, before -m deselects: test_quick.py checks QUICK on it
@@ -98,12 +101,21 @@ class FileProgress:
         return nodeid.split("::")[0]
 
     def pytest_collection_finish(self, session):
-        for item in session.items:
-            path = self.file_of(item.nodeid)
+        if session.items:  # with -n N (pytest-xdist) the workers collect: see below
+            self.count([item.nodeid for item in session.items])
+
+    @pytest.hookimpl(optionalhook=True)
+    def pytest_xdist_node_collection_finished(self, node, ids):
+        if not self.total:  # every worker collects the same tests
+            self.count(ids)
+
+    def count(self, nodeids: list[str]) -> None:
+        for nodeid in nodeids:
+            path = self.file_of(nodeid)
             if path not in self.left:
                 self.files.append(path)
             self.left[path] = self.left.get(path, 0) + 1
-        self.total = len(session.items)
+        self.total = len(nodeids)
         self.start = time.monotonic()
 
     def pytest_runtest_logstart(self, nodeid, location):

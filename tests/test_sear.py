@@ -628,7 +628,7 @@ def test_prefetcher_waits_while_the_margin_leaves_no_episode_and_the_loop_waits_
 def test_sear_test_device_sets_the_device_fixture(name, code, says):
     """benchmarks/gpu_check.sh runs the suite with SEAR_TEST_DEVICE=cuda: the `device` fixture (tests/conftest.py)
     hands it to every test that takes a device, and a device torch cannot use stops the run at once."""
-    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",  # no workers
                         f"{__file__}::test_prefetcher_delivers_the_batches_direct_sampling_would"],
                        env={**os.environ, "SEAR_TEST_DEVICE": name}, capture_output=True, text=True,
                        cwd=os.path.dirname(os.path.dirname(__file__)), timeout=300)
