@@ -1060,6 +1060,7 @@ class RunFiles:
         self.cfg, self.run, self.resumed = cfg, run, snapshot
         # a new run's is made by create(): removed if it ends before a snapshot
         self.path = run.resume or None
+        self.group = None  # the seed group's folder this run belongs to (group.py): what --resume takes then
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
         self.lock = None
         # open_logs(), once the directory is there
@@ -1180,6 +1181,11 @@ class RunFiles:
         shutil.rmtree(self.path, ignore_errors=True)
         return not os.path.exists(self.path)
 
+    @property
+    def resume_path(self) -> str:
+        """What `sear.py --resume` takes to continue this run: its directory, or its seed group's folder."""
+        return self.group or self.path
+
     def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
         """A storage error's line, ended with what the run dir holds now and how to go on."""
         if self.path is None:
@@ -1189,7 +1195,7 @@ class RunFiles:
                 "had no snapshot yet and was removed (nothing to resume)" if removed
                 else "has no snapshot yet, so there is nothing to resume"))
         return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: "
-                                f"fix that, then python sear.py --resume {self.path}")
+                                f"fix that, then python sear.py --resume {self.resume_path}")
 
     def what_a_kill_leaves(self) -> str:
         """What stands when the process is ended at once (cli.TermSignal's forced stop, from its
@@ -1201,7 +1207,7 @@ class RunFiles:
                                       else "has no snapshot yet, so there is nothing to resume: "
                                            "delete it")
         return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python "
-                f"sear.py --resume {self.path}")
+                f"sear.py --resume {self.resume_path}")
 
 
 class Console:
@@ -1547,7 +1553,7 @@ class RunDir:
         if self.files.snapshot_frame is not None:
             return (line + f"; the last snapshot (frame {self.files.snapshot_frame}) stands: "
                            "python sear.py "
-                    f"--resume {self.path} continues from it (with --save-buffer it replays the "
+                    f"--resume {self.files.resume_path} continues from it (with --save-buffer it replays the "
                     f"same updates): docs/health.md")
         return (line + f"; {self.path} " + ("had no snapshot yet and was removed" if removed else
                                             "has no snapshot yet, so there is nothing to resume")

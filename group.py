@@ -388,6 +388,7 @@ def members_of(cfg, run, snapshot, seeds, group_dir) -> tuple[str, list[Member]]
             members.append(Member(dataclasses.replace(cfg, seed=k), dataclasses.replace(run, resume=path), None, state))
     for m in members:
         m.rundir = experiment.RunDir(m.cfg, m.run, m.snapshot)
+        m.rundir.files.group = group_dir  # its lines name the group to resume
     return group_dir, members
 
 
@@ -462,8 +463,7 @@ def stop_members(members, error, group_dir):
             lines.append(str(e))
             said[m.rundir.path] = e
     if isinstance(error, (cli.StorageError, cli.NonFinite)) and said:  # the seed it happened to says what stands
-        path, e = next(((p, e) for p, e in said.items() if p and p in str(error)), next(iter(said.items())))
-        raise type(e)(str(e).replace(f"--resume {path}", f"--resume {group_dir}")) from None
+        raise next((e for p, e in said.items() if p and p in str(error)), next(iter(said.values()))) from None
     if isinstance(error, KeyboardInterrupt) and lines:
         cause, code = cli.stop_cause(error)
         frames = sorted({m.rundir.files.snapshot_frame for m in members}, key=lambda f: -1 if f is None else f)
