@@ -101,6 +101,17 @@ class Live:
             self.p.wait()
 
 
+def sigterm_when(args, cwd, pattern):
+    """sear.py ARGS, sent one SIGTERM once a line matches `pattern`: (exit code, stdout, stderr)."""
+    p = Live(args, cwd)
+    try:
+        p.wait_for(pattern)
+        p.p.send_signal(signal.SIGTERM)
+        return p.finish()
+    finally:
+        p.kill()
+
+
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
     """A finished tiny walker run (snapshot at frame 48, evaluations at 0, 24, 48); tests copy it."""
@@ -157,13 +168,8 @@ def test_a_run_directory_has_one_owner_and_a_dead_owner_never_blocks(tmp_path):
 
 # ------------------------------------------------------------------------------------------ SIGTERM
 def test_sigterm_stops_at_the_next_episode_end_with_a_snapshot_and_exit_143(tmp_path):
-    p = Live(["--run-root", tmp_path / "runs", "--env", "walker-walk", *LONG_EPISODES], tmp_path)
-    try:
-        p.wait_for(r"\| ep 0 step 3$")
-        p.p.send_signal(signal.SIGTERM)
-        code, out, err = p.finish()
-    finally:
-        p.kill()
+    code, out, err = sigterm_when(["--run-root", tmp_path / "runs", "--env", "walker-walk", *LONG_EPISODES], tmp_path,
+                                  r"\| ep 0 step 3$")
     run_dir = only_dir(tmp_path / "runs")
     assert code == 143, err
     assert err.strip().splitlines()[-1] == (f"sear.py: stopped by SIGTERM at frame 80 (between episodes): snapshot.pt "
@@ -191,14 +197,8 @@ def test_sigterm_during_an_evaluation_stops_at_its_episode_end_and_the_resumed_r
     """The frame-0 evaluation of 3 episodes of 40 steps: a SIGTERM in its first episode stops the run
     when that episode ends (not after the evaluation and the training episode that follows), with a
     snapshot of frame 0 and no eval.csv row; the resumed run evaluates at frame 0 again."""
-    p = Live(["--run-root", tmp_path / "runs", "--env", "walker-walk", *LONG_EPISODES, "--eval-episodes", "3"],
-             tmp_path)
-    try:
-        p.wait_for(r"\| eval 1/3 step 3 ")
-        p.p.send_signal(signal.SIGTERM)
-        code, out, err = p.finish()
-    finally:
-        p.kill()
+    code, out, err = sigterm_when(["--run-root", tmp_path / "runs", "--env", "walker-walk", *LONG_EPISODES,
+                                   "--eval-episodes", "3"], tmp_path, r"\| eval 1/3 step 3 ")
     run_dir = only_dir(tmp_path / "runs")
     assert code == 143, err
     assert "eval 2/3" not in out and "| ep 0 step" not in out, out[-3000:]

@@ -170,15 +170,11 @@ def test_a_sigterm_in_the_groups_evaluation_stops_there_and_the_resumed_group_ev
     """As a single run (tests/test_firstweek.py): a SIGTERM during the frame-0 evaluation stops the group when
     the evaluation episode it lands in ends, every seed's snapshot at frame 0 and no eval.csv row; the resumed group
     evaluates at frame 0 again."""
-    from tests.test_firstweek import LONG_EPISODES, Live
-    p = Live(["--run-root", tmp_path / "runs", "--env", "cartpole-balance", "--method", "sear", "--seeds", "1-2",
-              *LONG_EPISODES, "--max-episode-steps", "200", "--eval-episodes", "3"], tmp_path)
-    try:
-        p.wait_for(r"^eval 1/3 done")  # an evaluation episode takes seconds: the signal lands in the second
-        p.p.send_signal(signal.SIGTERM)
-        code, out, err = p.finish()
-    finally:
-        p.kill()
+    from tests.test_firstweek import LONG_EPISODES, sigterm_when
+    # an evaluation episode takes seconds: the signal lands in the second
+    code, out, err = sigterm_when(["--run-root", tmp_path / "runs", "--env", "cartpole-balance", "--method", "sear",
+                                   "--seeds", "1-2", *LONG_EPISODES, "--max-episode-steps", "200", "--eval-episodes",
+                                   "3"], tmp_path, r"^eval 1/3 done")
     assert code == 143, err[-2000:]
     assert "eval 3/3 done" not in out and "eval @ frame" not in out, out[-2000:]
     seeds = seed_dirs(group_dir(tmp_path))
