@@ -57,7 +57,7 @@ from functools import reduce
 
 import numpy as np
 
-import cli  # the standard library only: the curves need neither torch nor MuJoCo
+from harness import cli  # the standard library only: the curves need neither torch nor MuJoCo
 
 
 class PlotError(Exception):
@@ -612,7 +612,7 @@ def trained_agent(cfg, state, action_dim: int):
 def open_env(cfg):
     """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
     clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
-    import experiment
+    from harness import experiment
     try:
         return experiment.make_run_env(cfg, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
     except cli.ConfigError as e:
@@ -623,7 +623,7 @@ def map_frames(env, cfg, agent, n: int):
     """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart, from the reset of the
     run's first evaluation episode (its seed, its task), acting with `agent`'s mean action; and the
     steps they were at (counted on across episodes, should one end first)."""
-    import experiment
+    from harness import experiment
     tasks = experiment.eval_tasks(env, cfg)
 
     def reset(i):

@@ -47,7 +47,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from PIL import Image, UnidentifiedImageError
 
-import cli  # storage errors as one line (cli imports nothing of the project)
+from harness import cli  # storage errors as one line (cli imports nothing of the project)
 
 FORMAT = "sear-mask-model"
 VERSION = 1

@@ -115,7 +115,7 @@ def plain(*methods):
 def pick_variants(wanted: tuple[str, ...] | None, have: tuple[Variant, ...]) -> list[Variant]:
     """A grid's variants named in `wanted` (all if None), in the grid's order; NAME+drm is variant
     NAME run with --drm (drm.py: DrQ becomes DrM, SEAR becomes SEAR + DrM)."""
-    import cli  # stdlib only, as sear_config's imports: late
+    from harness import cli  # stdlib only, as sear_config's imports: late
     picked = []
     for v in have:
         if wanted is None or v.label in wanted:
@@ -251,7 +251,7 @@ def sear_classes():
 
 def sear_flag_names() -> set[str]:
     """Every flag sear.py's parser has: one per Config field, plus --no-X for booleans."""
-    import cli
+    from harness import cli
     return cli.flag_names(sear_classes()[0])
 
 
@@ -276,13 +276,13 @@ def check_passthrough(tokens: list[str]) -> None:
             continue
         if name in ours:  # only after --: before it, sweep.py's parser takes its own flags
             raise SweepError(f"{name} is sweep.py's, not sear.py's: put it before --")
-        import cli
+        from harness import cli
         raise SweepError(cli.no_such_flag(name, known | ours))
 
 
 def sear_config(argv: list[str], what: str):
     """sear.py's own parser and checks on argv (nothing is created), and the env name by envs.py."""
-    import cli
+    from harness import cli
     import envs
     Config, methods = sear_classes()
     err = io.StringIO()
@@ -302,7 +302,7 @@ def sear_config(argv: list[str], what: str):
 def config_key(cfg) -> str:
     """8 hex digits naming what differs from sear.py's defaults: new sear.py flags leave old keys
     alone."""
-    import cli
+    from harness import cli
     defaults = cli.config_dict(sear_classes()[0](), cli.RunConfig())
     diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
     return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
@@ -310,7 +310,7 @@ def config_key(cfg) -> str:
 
 def resume_flags(cfg) -> tuple[str, ...]:
     """The config values a resume may change (cli.RESUME_MAY_CHANGE), as flags."""
-    import cli
+    from harness import cli
     flags = []
     for name in sorted(cli.RESUME_MAY_CHANGE - {"resume"}):
         flag, value = "--" + name.replace("_", "-"), getattr(cfg, name)
@@ -336,7 +336,7 @@ def sweep_name(args) -> str:
 
 def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]:
     """(sweep name, jobs, grid) from the command line. Checks everything; creates nothing."""
-    import cli
+    from harness import cli
     grid = None
     if args.grid:
         if args.grid in NOT_YET:
@@ -424,7 +424,7 @@ class Pack:
 
 def pack_refusal(spec: JobSpec) -> str | None:
     """Why the job's configuration cannot run as a seed group (group.refusal), or None."""
-    import group
+    from harness import group
     with contextlib.redirect_stdout(io.StringIO()):  # the recipe's notes, printed once already by plan()
         cfg = sear_config(list(spec.args), spec.name)
     return group.refusal(cfg, cfg)
@@ -1284,7 +1284,7 @@ def has_column(run: str, name: str) -> bool:
 # ================================================================================================
 def build_parser() -> argparse.ArgumentParser:
     """sweep.py's flags; a bad one is a cli.ConfigError (one line)."""
-    import cli  # stdlib only, as sear_config's imports: late
+    from harness import cli  # stdlib only, as sear_config's imports: late
     grids = "; ".join(f"{name}: {g.doc}" for name, g in GRIDS.items())
     # no abbreviations: --seed is sear.py's
     p = cli.OneLineParser(prog="sweep.py", allow_abbrev=False,
@@ -1444,7 +1444,7 @@ def unrecorded_sweep(args, flags: list[str], verb: str, sweep: str, folder: str)
 
 
 def main(argv: list[str] | None = None) -> int:
-    import cli
+    from harness import cli
     argv = list(sys.argv[1:] if argv is None else argv)
     ours, after = (argv[:argv.index("--")], argv[argv.index("--") + 1:]) if "--" in argv else (argv, [])
     try:

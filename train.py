@@ -20,13 +20,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-import baselines
-import cli
-import drm
-import experiment
-import foresight
-import group
 import sear
+from harness import cli, experiment, group
+from methods import baselines, drm, foresight
 from sear import Agent, ReplayBuffer, arg
 
 METHODS = sear.METHODS  # SEAR's and DrQ-v2's rows, and (imported above) the baselines' and EF's

@@ -34,13 +34,13 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import cli  # noqa: E402
-import experiment  # noqa: E402
+from harness import cli  # noqa: E402
+from harness import experiment  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 
 try:
-    import baselines  # noqa: E402, F401  # registers the baseline methods into sear.METHODS
+    from methods import baselines  # noqa: E402, F401  # registers the baseline methods into sear.METHODS
 except ImportError:
     pass
 

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 import plot  # noqa: E402
-import experiment  # noqa: E402
+from harness import experiment  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 

@@ -26,8 +26,8 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import cli  # noqa: E402
-import experiment  # noqa: E402
+from harness import cli  # noqa: E402
+from harness import experiment  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 

@@ -31,7 +31,7 @@ import tempfile
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import cli  # noqa: E402
+from harness import cli  # noqa: E402
 import plot  # noqa: E402
 
 
@@ -168,7 +168,7 @@ def compare_replay(args):
 def compare_policy(args):
     import torch
 
-    import experiment
+    from harness import experiment
     import sear
     import train
     try:

@@ -47,7 +47,7 @@ import numpy as np
 from scipy import stats
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import cli  # noqa: E402
+from harness import cli  # noqa: E402
 import plot  # noqa: E402
 
 # The rung's rule (docs/published-curve.md#the-verdict-rule, its power), stated before the decisive run: our seeds against the

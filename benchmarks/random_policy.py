@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-import experiment  # noqa: E402
+from harness import experiment  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 

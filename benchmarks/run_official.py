@@ -48,7 +48,7 @@ import types
 
 # this project's cli (standard library only: no name the checkout's modules use), after the checkout's on the path
 sys.path.append(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import cli  # noqa: E402
+from harness import cli  # noqa: E402
 
 HYDRA_PACKAGES = "hydra-core omegaconf antlr4-python3-runtime PyYAML hydra-submitit-launcher"
 

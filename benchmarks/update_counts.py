@@ -53,7 +53,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import bench_agent  # noqa: E402
-import cli  # noqa: E402
+from harness import cli  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-import cli
+from harness import cli
 import envs
 import sear
 import train

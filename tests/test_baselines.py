@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import sear
-import baselines
+from methods import baselines
 import train
 from tests.test_cli import only_run_dir, run, tiny
 

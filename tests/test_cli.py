@@ -24,7 +24,7 @@ TINY = ["--frames", "48", "--seed-frames", "12", "--batch-size", "4", "--eval-ev
 
 def tiny(method="sear"):
     """TINY for `method`: --latent-dim only where it acts (SEAR's pooled encoder; drq and rgbm flatten)."""
-    import cli
+    from harness import cli
     if method in cli.POOLED_METHODS:
         return list(TINY)
     i = TINY.index("--latent-dim")
@@ -39,16 +39,17 @@ def run(args, tmp_path, timeout=600):
 
 def test_help_all_shows_every_flag_in_its_group(tmp_path):
     """--help-all lists every flag, the experiment's settings by the dataclass that holds them."""
-    import cli
+    from harness import cli
     import train
     r = run(["--help-all"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     assert all(name in r.stdout for name in cli.flag_names(train.Config))
     groups = [line for line in r.stdout.splitlines() if line.startswith("the ")]
     assert groups == ["the experiment (train.py Config):", "the experiment (sear.py Config):",
-                      "the experiment (baselines.py BaselineConfig):",
-                      "the experiment (foresight.py ForesightConfig):", "the experiment (drm.py DrMConfig):",
-                      "the experiment (experiment.py EnvConfig):", "the run (cli.py RunConfig):"]
+                      "the experiment (methods/baselines.py BaselineConfig):",
+                      "the experiment (methods/foresight.py ForesightConfig):",
+                      "the experiment (methods/drm.py DrMConfig):",
+                      "the experiment (harness/experiment.py EnvConfig):", "the run (harness/cli.py RunConfig):"]
 
 
 def help_flags(text: str) -> list[str]:
@@ -59,7 +60,7 @@ def help_flags(text: str) -> list[str]:
 def test_help_shows_the_flags_that_matter_in_named_groups_and_help_all_the_rest(tmp_path):
     """--help: docs/flags.md's flags (cli.HELP_GROUPS), under their group titles, with where each acts;
     --help-all: every flag. Both parse every flag."""
-    import cli
+    from harness import cli
     import train
     r = run(["--help"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -251,7 +252,7 @@ def test_interrupt_between_episodes_writes_a_snapshot(tmp_path):
     """Ctrl-C while the loop sits between episodes (here: while the first snapshot is being
     written) saves that exact state; a deterministic stand-in for a well-timed SIGINT."""
     driver = (
-        "import sys, experiment, train\n"
+        "import sys, train\nfrom harness import experiment\n"
         "real, calls = experiment.save_snapshot, []\n"
         "def ctrl_c_once(run_dir, payload):\n"
         "    calls.append(payload['counters']['step'])\n"
@@ -301,7 +302,7 @@ def test_evaluation_shows_which_episode_it_is_on_and_that_frame_0_scores_the_unt
 
 
 def test_help_shows_per_task_defaults_as_such():
-    import cli
+    from harness import cli
     import sear
     import train
     text = " ".join(cli.build_parser(train.Config, sear.METHODS, full=True).format_help().split())
@@ -385,7 +386,7 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     import numpy as np
     import torch
 
-    import cli
+    from harness import cli
     import sear
     import train
     seen = {"act": [], "update": [], "actions": []}
@@ -449,7 +450,7 @@ def test_runs_started_in_the_same_second_get_their_own_run_dirs(tmp_path, monkey
     """Two seeds-alike runs launched together: the second must not crash on the first's directory,
     even when the other process creates it between a check and the mkdir (the race is simulated)."""
     sys.path.insert(0, str(ROOT))
-    import experiment
+    from harness import experiment
     monkeypatch.setattr(experiment.time, "strftime", lambda fmt: "20261123-000000")
     first = experiment.new_run_dir(str(tmp_path), "walker-stand__sear__1")
     monkeypatch.setattr(experiment.os.path, "exists", lambda p: False)  # the other process wins the race
@@ -465,7 +466,7 @@ def test_configure_allocator_keeps_a_freed_block_for_the_next_malloc():
     pages of 4 KB): what the update's activations would pay at every update."""
     code = """
 import ctypes, resource, sys
-import cli
+from harness import cli
 libc = ctypes.CDLL(None)
 libc.malloc.restype, libc.free.argtypes = ctypes.c_void_p, [ctypes.c_void_p]
 def touch_and_free():
@@ -506,8 +507,8 @@ def main_in_process(argv, capsys, tmp_path, monkeypatch):
 def test_every_seed_a_user_can_type_is_one_line_or_works(tmp_path, capsys, monkeypatch):
     """numpy's legacy seeds (np.random.seed, dm_control's and Meta-World's RandomState) are below 2^32 and the
     eval env's seed is --seed + 100000: outside [0, 2^32 - 1 - 100000] a seed is one line, inside it trains."""
-    import cli
-    import experiment
+    from harness import cli
+    from harness import experiment
     assert cli.MAX_SEED + experiment.EVAL_SEED == 2**32 - 1
     for seed in ("-1", "4294967296", str(cli.MAX_SEED + 1), "1" + "0" * 30):
         code, err = main_in_process(["--seed", seed], capsys, tmp_path, monkeypatch)
@@ -529,7 +530,7 @@ def test_an_unknown_env_gets_the_nearest_name_before_anything_starts(tmp_path, c
 
 
 def test_int_flags_take_whole_numbers_written_as_floats(tmp_path, capsys, monkeypatch):
-    import cli
+    from harness import cli
     import sear
     import train
     monkeypatch.chdir(tmp_path)
@@ -570,7 +571,7 @@ def test_make_env_defaults_are_the_runs():
     import inspect
 
     import envs
-    import experiment
+    from harness import experiment
     params = inspect.signature(envs.make_env).parameters
     run = experiment.EnvConfig()
     shared = [name for name in params if hasattr(run, name) and name != "backgrounds"]  # None there, '' here

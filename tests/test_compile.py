@@ -5,7 +5,7 @@ import copy
 import pytest
 import torch
 
-import cli
+from harness import cli
 import train
 from tests.test_cli import only_run_dir, rows, run, tiny
 from tests.test_sear import fake_batch, small_cfg

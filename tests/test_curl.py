@@ -8,8 +8,8 @@ import io
 import pytest
 import torch
 
-import baselines
-import experiment
+from methods import baselines
+from harness import experiment
 import sear
 from tests import reference
 from tests.test_baselines import numpy_batch, tiny_cfg

@@ -10,8 +10,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import baselines
-import cli
+from methods import baselines
+from harness import cli
 import sear
 import sweep
 import train

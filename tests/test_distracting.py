@@ -295,7 +295,7 @@ def test_a_frame_is_resized_whole_as_the_original_suite_not_cropped(tmp_path):
 
 
 def test_every_run_on_procedural_backgrounds_says_they_are_not_the_papers():
-    import cli
+    from harness import cli
     run = types.SimpleNamespace(threads=1)
 
     def warnings(env, backgrounds):

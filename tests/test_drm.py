@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-import drm
+from harness import cli
+from methods import drm
 import sear
 import train
 from tests.test_cli import rows, run, straight_and_resumed, tiny

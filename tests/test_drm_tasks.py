@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-import cli
+from harness import cli
 import envs
 import sear
 import train

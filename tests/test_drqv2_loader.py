@@ -96,7 +96,7 @@ def test_a_run_trains_marks_its_dir_and_resumes_only_through_the_script(tmp_path
 
 
 def test_an_interrupted_run_names_this_script_to_resume_with(tmp_path):
-    code = ("import sys; sys.path.insert(0, 'benchmarks'); import drqv2_loader, experiment; drqv2_loader.install(4); "
+    code = ("import sys; sys.path.insert(0, 'benchmarks'); import drqv2_loader; from harness import experiment; drqv2_loader.install(4); "
             "print(experiment.interrupt_message('/r/x', 5000, 'between episodes', 5000, 10, 'stopped by SIGTERM'))")
     r = run("-c", code, cwd=ROOT)
     assert r.returncode == 0, r.stderr

@@ -209,7 +209,7 @@ def test_sigterm_during_an_evaluation_stops_at_its_episode_end_and_the_resumed_r
         f"redone on resume): snapshot.pt holds this frame; continue with: python sear.py --resume {run_dir}")
     assert snapshot_step(run_dir) == 0
     assert not (run_dir / "eval.csv").exists() or rows(run_dir / "eval.csv") == []
-    import cli
+    from harness import cli
     if hasattr(cli.TermSignal(), "waits_for"):  # cli.TermSignal prints what the run says it waits for
         line = next(line for line in err.splitlines() if line.startswith("sear.py: SIGTERM: "))
         assert re.fullmatch(r"sear.py: SIGTERM: stopping at the end of this evaluation episode \(not timed yet: the "
@@ -226,8 +226,8 @@ def test_sigterm_during_an_evaluation_stops_at_its_episode_end_and_the_resumed_r
 def test_the_sigterm_line_says_what_it_waits_for_and_how_long_at_most_as_measured():
     """cli.TermSignal's line asks the run dir (cli.TERM.waits_for, set for the time of its block)."""
     import types
-    import cli
-    import experiment
+    from harness import cli
+    from harness import experiment
     cfg = types.SimpleNamespace(frames=100_000, eval_every=10_000, discount=0.99, action_repeat=2)
     run = types.SimpleNamespace(resume="", log_every=0)
     with experiment.RunDir(cfg, run) as rundir:
@@ -300,7 +300,7 @@ def test_a_second_sigterm_stops_a_run_inside_one_long_native_call_within_seconds
 def test_more_threads_than_cores_are_clamped_with_a_warning_and_the_run_finishes(tmp_path, how):
     """64 torch threads on 2 cores spun for over ten minutes in Agent.__init__ (nn.init.orthogonal_):
     clamped to the usable cores, the run goes on, and says so."""
-    import cli
+    from harness import cli
     cores, n = len(os.sched_getaffinity(0)), max(64, 4 * len(os.sched_getaffinity(0)))
     assert cli.torch_threads(cli.RunConfig(threads=n)) == cores
     args = ["--run-root", tmp_path / "runs", "--env", "walker-walk", *TINY[:-2], "--frames", "16"]  # less --threads

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-import foresight
+from harness import cli
+from methods import foresight
 import sear
 import sweep
 import train

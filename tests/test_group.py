@@ -13,7 +13,7 @@ import time
 import pytest
 import torch
 
-import group
+from harness import group
 import sear
 import train
 from tests.test_cli import ROOT, TINY, rows, run

@@ -20,7 +20,7 @@ QUIET = [*TINY, "--eval-every", "100000", "--log-every", "0"]
 def patched_run(tmp_path, patch: str, args, timeout=600):
     """sear.py's main with `patch` (Python, run after `import cli, experiment, sear, torch, train`) applied."""
     script = tmp_path / "patched_sear.py"
-    script.write_text("import sys\nimport cli, experiment, sear, torch, train\n" + patch
+    script.write_text("import sys\nimport sear, torch, train\nfrom harness import cli, experiment\n" + patch
                       + "\nsys.exit(train.main(sys.argv[1:]))\n")
     return subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, cwd=tmp_path, env={**ENV, "PYTHONPATH": str(ROOT)})
@@ -33,7 +33,7 @@ def snapshot(run_dir):
 
 # ----------------------------------------------------------------------------------- the ETA
 def test_the_eta_counts_only_the_updates_and_evaluations_it_has_timed(capsys):
-    import experiment
+    from harness import experiment
     now, frame = [0.0], [0]
     p = experiment.Progress(total=100_000, every=0, eval_every=10_000, clock=lambda: now[0])
 
@@ -95,7 +95,7 @@ def test_a_collapsed_actor_is_warned_of_once_and_the_recorded_healthy_runs_are_n
     mean action at the bound, spread below 4e-9) is warned of; our DrQ seed 2 at 8k-16k frames (97-99%
     saturated but spread 0.15-0.25; it recovered), seed 3 solving the task bang-bang (22-44% / 0.83-0.89)
     and SEAR's early phase (one action in every state, none at the bound; it recovered) are not."""
-    import experiment
+    from harness import experiment
     window = experiment.Health.COLLAPSE_WINDOW
     health = experiment.Health(discount=0.99)
     fired = [health.check({"actor_saturated": 1.0, "action_spread": 3e-9, "q": 20.0}) for _ in range(window + 50)]
@@ -109,7 +109,7 @@ def test_a_collapsed_actor_is_warned_of_once_and_the_recorded_healthy_runs_are_n
 
 
 def test_a_diverging_critic_is_warned_of_against_the_largest_return_any_policy_can_have():
-    import experiment
+    from harness import experiment
     window = experiment.Health.DIVERGE_WINDOW
     health = experiment.Health(discount=0.99)
     health.see_rewards(np.array([0.0, 2.0, 1.5]))  # cartpole at action repeat 2: at most 2 per agent step
@@ -127,8 +127,8 @@ def test_a_diverging_critic_is_warned_of_against_the_largest_return_any_policy_c
 
 def test_a_value_that_is_not_finite_raises_and_a_non_finite_action_never_reaches_the_env():
     import gymnasium as gym
-    import cli
-    import experiment
+    from harness import cli
+    from harness import experiment
     health = experiment.Health(discount=0.99)
     health.check({"critic_loss": 1.0, "q": 1.0})
     with pytest.raises(cli.NonFinite, match=r"^critic_loss is inf at update 2 of this process$"):

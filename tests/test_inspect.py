@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-import experiment
+from harness import experiment
 import plot
 import sear
 import train

@@ -17,9 +17,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SEAR = ROOT / "sear.py"
 TRAIN = ROOT / "train.py"
-HARNESS = ("cli", "experiment")
+HARNESS = ("harness.cli", "harness.experiment")
+PACKAGES = ("harness", "methods")  # the harness (command line, run directory, speed) and the successor methods
 SEAR_LINES = 700
-MODULES = sorted(p.stem for p in ROOT.glob("*.py"))  # the importable modules at the top level
+MODULES = sorted([p.stem for p in ROOT.glob("*.py")]  # the importable modules: the top level's and the packages'
+                 + [f"{pkg}.{p.stem}" for pkg in PACKAGES for p in (ROOT / pkg).glob("*.py") if p.stem != "__init__"])
+
+
+def module_path(m: str) -> Path:
+    return ROOT / (m.replace(".", "/") + ".py")
 ALGORITHM_SECTIONS = range(1, 7)
 LOOP = "train"
 FUNCTION_LINES, LOOP_LINES = 60, 80  # every function outside tests; the loop (train.py's train)
@@ -106,7 +112,7 @@ def test_the_harness_builds_its_state_in_init():
     until it is known): what an object holds is read in one place."""
     late = []
     for module in HARNESS:
-        for cls in (n for n in ast.walk(ast.parse((ROOT / f"{module}.py").read_text())) if isinstance(n, ast.ClassDef)):
+        for cls in (n for n in ast.walk(ast.parse(module_path(module).read_text())) if isinstance(n, ast.ClassDef)):
             made = {}
             for fn in (n for n in cls.body if isinstance(n, ast.FunctionDef)):
                 for node in ast.walk(fn):
@@ -126,7 +132,7 @@ def test_one_one_line_parser():
     parsers = sorted(f"{p.relative_to(ROOT)}:{node.name}" for p in project_files()
                      for node in ast.walk(ast.parse(p.read_text())) if isinstance(node, ast.ClassDef)
                      and any(ast.unparse(base) in ("argparse.ArgumentParser", "ArgumentParser") for base in node.bases))
-    assert parsers == ["cli.py:OneLineParser", "envs.py:_OneLineParser", "toy_pointmass.py:_Parser"]
+    assert parsers == ["envs.py:_OneLineParser", "harness/cli.py:OneLineParser", "toy_pointmass.py:_Parser"]
 
 
 def loaded_after(statement: str) -> set[str]:
@@ -139,7 +145,7 @@ def loaded_after(statement: str) -> set[str]:
 def test_import_sear_loads_no_plotting_video_sweep_or_tensorboard_and_cli_no_torch():
     assert not {"matplotlib", "imageio", "submitit", "tensorboard"} & loaded_after("import sear")
     # sweep.py and plot.py read flags and configs through cli without torch.
-    assert not {"numpy", "torch"} & loaded_after("import cli")
+    assert not {"numpy", "torch"} & loaded_after("from harness import cli")
 
 
 def test_import_sear_needs_only_torch_numpy_and_the_standard_library():
@@ -164,7 +170,7 @@ def test_the_loop_owns_its_schedule_and_the_run_dir_only_writes():
     """train.train decides when to evaluate, snapshot and stop; experiment.RunDir (and the files and
     console it is made of) never moves the loop's counters (it is handed them to save) and keeps no
     clock of when to snapshot."""
-    tree = ast.parse((ROOT / "experiment.py").read_text())
+    tree = ast.parse((ROOT / "harness" / "experiment.py").read_text())
     parts = [n for n in tree.body if isinstance(n, ast.ClassDef) and n.name in ("RunDir", "RunFiles", "Console")]
     assert len(parts) == 3
 
@@ -189,9 +195,12 @@ def imports(path) -> set[str]:
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
-            names |= {a.name.split(".")[0] for a in node.names}
+            names |= {a.name if a.name.split(".")[0] in PACKAGES else a.name.split(".")[0] for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
-            names.add(node.module.split(".")[0])
+            if node.module in PACKAGES:  # from harness import cli
+                names |= {f"{node.module}.{a.name}" for a in node.names}
+            else:
+                names.add(node.module if node.module.split(".")[0] in PACKAGES else node.module.split(".")[0])
     return names & set(MODULES)
 
 
@@ -208,7 +217,7 @@ def test_sear_py_imports_torch_numpy_and_the_standard_library_only():
 
 
 def test_no_import_cycle_and_sear_on_the_ground_floor():
-    graph = {m: imports(ROOT / f"{m}.py") - {m} for m in MODULES}
+    graph = {m: imports(module_path(m)) - {m} for m in MODULES}
 
     def reach(m, seen):
         for n in graph[m] - seen:
@@ -217,7 +226,7 @@ def test_no_import_cycle_and_sear_on_the_ground_floor():
         return seen
     assert [m for m in MODULES if m in reach(m, set())] == []
     assert graph["sear"] == set()  # nothing of the project below it
-    assert {"sear"} <= graph["baselines"] & graph["drm"] & graph["train"]
+    assert {"sear"} <= graph["methods.baselines"] & graph["methods.drm"] & graph["train"]
     # `python sear.py` and `python train.py` run train.py as __main__: nothing it imports may import a
     # second copy of it as `train`; the harness never imports the algorithm.
     assert "train" not in set().union(*(reach(m, {m}) for m in graph["train"]))

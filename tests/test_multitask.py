@@ -16,9 +16,9 @@ import pytest
 import torch
 from scipy import ndimage
 
-import cli
+from harness import cli
 import envs
-import experiment
+from harness import experiment
 import sear
 import train
 from tests.test_envs import raw_robot, rand_vecs, is_one_of

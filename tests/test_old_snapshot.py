@@ -41,7 +41,7 @@ def test_a_run_dir_from_ca5eab9_resumes_and_finishes(tmp_path):
     assert snapshot["counters"]["step"] == 24 and snapshot["counters"]["episode"] == 3
     # The old run's values; a field added since takes its default, one removed since is gone (CURL's
     # curl_dim and curl_coef); and what a resume may change, changed.
-    import cli
+    from harness import cli
     import sear
     import train
     now = cli.config_dict(train.Config(), cli.RunConfig())

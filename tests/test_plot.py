@@ -398,7 +398,7 @@ def test_a_key_older_runs_lack_does_not_split_them_from_newer_ones(tmp_path, cap
 
 
 def test_not_a_setting_covers_what_a_resume_may_change():
-    import cli
+    from harness import cli
     assert cli.RESUME_MAY_CHANGE <= plot.NOT_A_SETTING
 
 

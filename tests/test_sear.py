@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-import cli
-import experiment
+from harness import cli
+from harness import experiment
 import sear
 import train
 

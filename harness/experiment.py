@@ -31,8 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-import cli
-from cli import arg, storing, torch_save, write_atomically
+from harness import cli
+from harness.cli import arg, storing, torch_save, write_atomically
 
 
 # ================================================================================================

@@ -34,9 +34,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-import cli
-import experiment
 import sear
+from harness import cli, experiment
 
 NETWORKS = ("encoder", "actor", "critic", "critic_target", "aux")
 

@@ -369,9 +369,9 @@ def field_groups(Config) -> list:
     for cls in (c for c in Config.__mro__ if dataclasses.is_dataclass(c)):
         own = cls.__dict__.get("__annotations__", {})
         module = "train" if cls.__module__ == "__main__" else cls.__module__  # `python sear.py` runs train.py so
-        title = f"the experiment ({module}.py {cls.__name__})"
+        title = f"the experiment ({module.replace('.', '/')}.py {cls.__name__})"
         groups.append((title, cls(), [f for f in dataclasses.fields(cls) if f.name in own]))
-    return groups + [("the run (cli.py RunConfig)", RunConfig(), list(dataclasses.fields(RunConfig)))]
+    return groups + [("the run (harness/cli.py RunConfig)", RunConfig(), list(dataclasses.fields(RunConfig)))]
 
 
 # --help: the flags that matter (docs/flags.md), in these groups; --help-all: every flag, by the dataclass
