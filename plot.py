@@ -612,9 +612,9 @@ def trained_agent(cfg, state, action_dim: int):
 def open_env(cfg):
     """The run's eval env as sear.py builds it (same seeds, render settings, distractions), but with
     clean masks whatever the run's --mask-noise, and masks rendered for mask-free methods too."""
-    from harness import experiment
+    from harness import experiment, runenvs
     try:
-        return experiment.make_run_env(cfg, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
+        return runenvs.make_run_env(cfg, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
     except cli.ConfigError as e:
         raise PlotError(str(e)) from None
 
@@ -623,13 +623,13 @@ def map_frames(env, cfg, agent, n: int):
     """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart, from the reset of the
     run's first evaluation episode (its seed, its task), acting with `agent`'s mean action; and the
     steps they were at (counted on across episodes, should one end first)."""
-    from harness import experiment
-    tasks = experiment.eval_tasks(env, cfg)
+    from harness import experiment, runenvs
+    tasks = runenvs.eval_tasks(getattr(env.unwrapped, "tasks", None), cfg)
 
     def reset(i):
         task = tasks[i % len(tasks)]
         options = None if task is None else {"task": task}
-        return env.reset(seed=experiment.episode_seed(cfg.seed + 100_000, i), options=options)[0]
+        return env.reset(seed=runenvs.episode_seed(cfg.seed + 100_000, i), options=options)[0]
 
     episode, t, pixels, masks, steps = 0, 0, [], [], []
     obs = reset(episode)

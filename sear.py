@@ -5,10 +5,10 @@ decaying exploration noise) whose image encoder is also trained by two decoders 
 two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
 the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
 c2 = 0.0025). Other representation losses plug into the same seam (`AuxLoss`, a row of `METHODS`):
-baselines.py adds the paper's baselines, foresight.py Ego-Foresight, drm.py DrM (`DrMAgent`). In reading
-order: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent, 6. Replay buffer.
-It needs torch, numpy and the standard library only; the loop, the envs and the command line stand on it
-in train.py: `python sear.py --env walker-walk-distracting` runs train.py.
+methods/ holds the paper's baselines, Ego-Foresight and DrM (`DrMAgent`). In reading order:
+1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent, 6. Replay buffer.
+It needs torch, numpy and the standard library only; the loop, the envs and the command line stand
+on it in train.py: `python sear.py --env walker-walk-distracting` runs train.py.
 """
 from __future__ import annotations
 
@@ -64,16 +64,17 @@ class Config:
 # ================================================================================================
 # 2. Networks
 # ================================================================================================
-def weight_init(m):
+def weight_init(m, generator=None):
     """DrQ-v2's init: orthogonal weights, zero biases (ReLU gain for convolutions)."""
     if isinstance(m, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
-        nn.init.orthogonal_(m.weight.data, 1.0 if isinstance(m, nn.Linear) else nn.init.calculate_gain("relu"))
+        gain = 1.0 if isinstance(m, nn.Linear) else nn.init.calculate_gain("relu")
+        nn.init.orthogonal_(m.weight.data, gain, generator=generator)
         if m.bias is not None:
             m.bias.data.fill_(0.0)
 
 
 def normalise(pixels):
-    """Pixels in [0, 255] to [-0.5, 0.5]: what the encoder reads and Eq. 5 reconstructs (DrQ-v2's scale)."""
+    """Pixels in [0, 255] to [-0.5, 0.5]: what the encoder reads and Eq. 5 reconstructs (DrQ-v2's)."""
     return pixels / 255.0 - 0.5
 
 
@@ -117,12 +118,12 @@ class PooledEncoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """The decoder body shared by the mask and the reconstruction heads (appendix "Architecture").
+    """The decoder body of the mask and the reconstruction heads (appendix "Architecture"):
     8x8 -> 35 (k4 s4, output_padding 3) -> 37 -> 39 -> 41 (k3 s1) -> 84 (k3 s2, output_padding 1)."""
 
     def __init__(self, in_dim: int, out_channels: int, in_channels: int = 16):
         super().__init__()
-        self.in_channels = in_channels  # 16 for SEAR's heads; DrQ-AE's decoder starts from 32 (authors' code)
+        self.in_channels = in_channels  # 16 for SEAR's heads; DrQ-AE's starts from 32 (authors' code)
         self.fc = nn.Sequential(nn.Linear(in_dim, in_channels * 8 * 8), nn.ReLU())
         self.deconvs = nn.Sequential(
             nn.ConvTranspose2d(in_channels, 16, 4, stride=4, output_padding=3), nn.ReLU(),
@@ -143,8 +144,10 @@ class TruncatedNormal(torch.distributions.Normal):
         super().__init__(loc, scale, validate_args=False)
         self.eps = eps
 
-    def sample(self, clip=None):
-        noise = torch.randn_like(self.loc) * self.scale
+    def sample(self, clip=None, noise=None):
+        """loc + scale x noise, the noise clipped to +-clip; `noise`: standard normal draws of loc's
+        shape (the agent draws them from its generator; torch's RNG when not given)."""
+        noise = (torch.randn_like(self.loc) if noise is None else noise) * self.scale
         if clip is not None:
             noise = noise.clamp(-clip, clip)
         x = self.loc + noise
@@ -172,8 +175,9 @@ class Actor(nn.Module):
 
     def forward(self, latent, std):
         mu = torch.tanh(self.policy(self.trunk(latent)))
-        # std: a float (acting), or the update's 0-d float64 tensor, rounded to float32 as a float would be
-        return TruncatedNormal(mu, torch.full_like(mu, std) if isinstance(std, float) else std.float().expand_as(mu))
+        # std: a float, or a 0-d float64 tensor (an update's), rounded to float32 as a float would be
+        std = torch.full_like(mu, std) if isinstance(std, float) else std.float().expand_as(mu)
+        return TruncatedNormal(mu, std)
 
 
 class Critic(nn.Module):
@@ -194,29 +198,31 @@ class Critic(nn.Module):
 # ================================================================================================
 # 3. Augmentation
 # ================================================================================================
-def random_shift(x: torch.Tensor, pad: int = 4, shift: torch.Tensor | None = None):
-    """DrQ's random shift: replicate-pad by `pad`, then crop back with a per-sample integer shift,
-    done as a bilinear grid sample (DrQ-v2's RandomShiftsAug, its arithmetic). Integer shifts land on
-    pixel centres (to float32 rounding), so a 0/1 mask stays 0/1. SEAR shifts image and mask stack together by
-    concatenating them along channels: the same shift for both is what makes the mask a label of the
-    image the encoder sees."""
+PAD = 4  # DrQ's random shift: up to 4 pixels each way
+
+
+def random_shift(x: torch.Tensor, shift: torch.Tensor | None = None, pad: int = PAD):
+    """DrQ's random shift: replicate-pad by `pad`, then crop back with a per-sample integer shift
+    (n, 1, 1, 2) in [0, 2 pad], done as a bilinear grid sample (DrQ-v2's RandomShiftsAug, its
+    arithmetic). Integer shifts land on pixel centres (to float32 rounding): a 0/1 mask stays 0/1."""
     n, c, h, w = x.shape
     assert h == w
     padded = F.pad(x, (pad,) * 4, mode="replicate")
     eps = 1.0 / (h + 2 * pad)
     arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device, dtype=x.dtype)[:h]
     arange = arange.unsqueeze(0).expand(h, h).unsqueeze(2)
-    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0)  # broadcast over the batch
+    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0)  # for every sample
     if shift is None:
         shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device, dtype=x.dtype)
     grid = base_grid + shift.to(x.dtype) * (2.0 / (h + 2 * pad))
     return F.grid_sample(padded, grid, padding_mode="zeros", align_corners=False)
 
 
-def shift_together(obs: torch.Tensor, *labels: torch.Tensor):
-    """One random shift per sample, applied identically to the image stack and each label stack (masks, EF's frame)."""
-    both = random_shift(torch.cat([obs, *labels], dim=1) if labels else obs)
-    return both.split([obs.shape[1], *(x.shape[1] for x in labels)], dim=1)
+def shift_together(obs: torch.Tensor, mask: torch.Tensor, shift: torch.Tensor | None = None):
+    """The same shift per sample for the image stack and its mask stack, concatenated along
+    channels: what makes the mask a label of the image the encoder sees."""
+    both = random_shift(torch.cat([obs, mask], dim=1), shift)
+    return both.split([obs.shape[1], mask.shape[1]], dim=1)
 
 
 # ================================================================================================
@@ -232,8 +238,8 @@ def summed_mse(pred, target, weight=None):
 
 
 def reconstruction_loss(pred, obs, weight=None):
-    """Eq. 5 on the [-0.5, 0.5]-normalised image, the prediction clamped to that range first (the authors'
-    sear/agents/sear.py, drqv2AE.py): no gradient pushes a pixel already past black or white further."""
+    """Eq. 5 on the [-0.5, 0.5]-normalised image, the prediction clamped to that range first (the
+    authors' sear.py, drqv2AE.py): no gradient pushes a pixel already past black or white further."""
     return summed_mse(pred.float().clamp(-0.5, 0.5), normalise(obs), weight)
 
 
@@ -245,9 +251,10 @@ def summed_bce(logits, target):
 
 class AuxLoss(nn.Module):
     """The seam: sees the latent of the augmented observation (which the critic reads too) and the
-    augmented image and mask (same shift; by keyword: `encoder`, the un-augmented `obs`, the `batch`); returns
-    its weighted term of Eq. 6 and its unweighted terms for the logs. Its parameters join the encoder's and
-    critic's optimiser (CURL steps its own, in after_update). METHODS builds it: build(cfg, encoder, critic)."""
+    augmented image and mask (same shift); by keyword `encoder`, the un-augmented `obs`, the `batch`
+    and the agent's generator `rng` (for draws of its own). Returns its weighted term of Eq. 6 and its
+    unweighted terms for the logs. Its parameters join the encoder's and critic's optimiser. METHODS
+    builds it: build(cfg, encoder, critic)."""
     metric_names: tuple[str, ...] = ()
     decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
 
@@ -256,24 +263,18 @@ class AuxLoss(nn.Module):
         return cls(cfg, encoder, critic)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
-        return latent.new_zeros(()), {}  # nothing in Eq. 6 (CURL: its own step, after_update)
+        return latent.new_zeros(()), {}
 
-    def decode(self, latent) -> dict:  # what the decoders make of a latent: the evaluation's metrics and videos
+    def decode(self, latent) -> dict:  # what the decoders make of a latent: evaluation metrics, videos
         return {}
 
-    def after_update(self, obs) -> dict:  # at the end of each update (CURL's own step): its terms for the logs
+    def after_update(self, obs, rng) -> dict:  # a step of its own after each update (CURL's): log terms
         return {}
-
-    def act(self, action, step):  # the action a training step takes instead (EF's babbling)
-        return action
-
-    def replay(self, *args, **kwargs):  # the replay the method samples (EF's: windows)
-        return ReplayBuffer(*args, **kwargs)
 
 
 class SearAux(AuxLoss):
     """SEAR: z_R -> robot mask (Eq. 4), z -> image (Eq. 5), weighted c1 and c2 (Eq. 6). As in the
-    authors' code, the FIRST half of the latent is z (reconstruction) and the SECOND half is z_R (mask)."""
+    authors' code, the FIRST half of the latent is z (reconstruction), the SECOND z_R (mask)."""
     metric_names = ("recon_loss", "mask_loss")
     decodes = ("mask", "recon")
     split = True
@@ -289,15 +290,15 @@ class SearAux(AuxLoss):
     def build(cls, cfg, encoder, critic):
         return cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
 
-    def decoder_inputs(self, latent):  # (z, z_R): the two halves, or the whole latent twice without the split
+    def decoder_inputs(self, latent):  # (z, z_R): the two halves, or without the split the whole twice
         return latent.chunk(2, dim=1) if self.split else (latent, latent)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
         z, z_r = self.decoder_inputs(latent)
-        recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)
-        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
-        loss = self.c1 * recon_loss + self.c2 * mask_loss
-        return loss, {"recon_loss": recon_loss.detach(), "mask_loss": mask_loss.detach()}
+        recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)  # Eq. 5
+        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)  # Eq. 4
+        terms = {"recon_loss": recon_loss.detach(), "mask_loss": mask_loss.detach()}
+        return self.c1 * recon_loss + self.c2 * mask_loss, terms
 
     def decode(self, latent):
         z, z_r = self.decoder_inputs(latent)
@@ -307,16 +308,17 @@ class SearAux(AuxLoss):
 @dataclass(frozen=True)
 class Method:
     doc: str
-    aux: type[AuxLoss] | None = None  # aux.build(cfg, encoder, critic); None: only the critic trains the encoder
+    aux: type[AuxLoss] | None = None  # aux.build(cfg, encoder, critic); None: the critic alone trains it
     encoder: str = "pooled"           # "pooled" (SEAR's) or "drq" (DrQ-v2's, flattened)
     mask_input: bool = False          # DrQ-RGBM: the mask is a 4th channel of every stacked frame
-    uses_mask: bool = False           # False: the env skips the segmentation render (it costs a second pass)
+    uses_mask: bool = False           # False: the env skips the segmentation render (a second pass)
 
 
+# The methods of this file; train.py adds the baselines' (methods/baselines.py) and Ego-Foresight's.
 METHODS = {
     "sear": Method("SEAR: latent split, mask + recon", aux=SearAux, uses_mask=True),
     "drq": Method("DrQ-v2 as published", encoder="drq"),
-}  # baselines.py adds the paper's baselines: ae, mae, curl, rgbm, sear-nosplit, dear
+}
 
 
 # ================================================================================================
@@ -333,109 +335,79 @@ class Batch(NamedTuple):
     next_mask: torch.Tensor
 
 
+class Noise(NamedTuple):
+    """Every random number of one update, in DrQ-v2's order of drawing them (Agent.draw)."""
+    shift: torch.Tensor       # (B, 1, 1, 2) the random shift of obs (and of its masks)
+    next_shift: torch.Tensor  # (B, 1, 1, 2) of next_obs
+    target: torch.Tensor      # (B, A) standard normal: the exploration noise of the target's action
+    actor: torch.Tensor       # (B, A) of the action the actor's loss scores
+
+
 def linear_std(cfg: Config, step):
-    """DrQ-v2's `linear(std_start, std_end, std_steps)` at the AGENT step (an int, or the update's float64
-    tensor: on the device, as a float would be): at action repeat 2, std_end after 500k steps = 1M frames."""
+    """DrQ-v2's `linear(std_start, std_end, std_steps)` at the AGENT step (an int, or an update's
+    float64 tensor): at action repeat 2, std_end after 500k steps = 1M frames."""
     mix = step / cfg.std_steps
     mix = mix.clamp(0.0, 1.0) if torch.is_tensor(mix) else min(max(mix, 0.0), 1.0)
     return (1.0 - mix) * cfg.std_start + mix * cfg.std_end
 
 
 def actor_metrics(actor_loss, mu) -> dict:
-    """Short DDPG runs' failure, made visible: actor_saturated, the share of mean actions at exactly +-1 in
-    float32 (no gradient brings them back); action_spread, their std over the batch (0: one action always)."""
+    """Short DDPG runs' failure, made visible: actor_saturated, the share of mean actions at exactly
+    +-1 in float32 (no gradient brings them back); action_spread, their std over the batch."""
     return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).mean(dtype=torch.float32),
             "action_spread": mu.std(0, correction=0).mean()}
 
 
-class Adam(torch.optim.Adam):
-    """torch.optim.Adam, stepped on given gradients: `opt.step(torch.autograd.grad(loss, opt.params))`.
-    torch's CPU arithmetic to the bit, as one foreach operation per term over all parameters and each
-    step count a float64 tensor on the device: no per-parameter loop, no host sync (torch's CPU step reads
-    every count with .item()), one graph for torch.compile. Its state_dict is torch.optim.Adam's."""
-
-    def __init__(self, params, lr):
-        super().__init__(params, lr=lr)
-        self.reset()
-
-    @property
-    def params(self):
-        return [p for group in self.param_groups for p in group["params"]]
-
-    def reset(self, params=None):  # fresh moments and counts (of `params`: DrM's perturbation forgets some)
-        for p in self.params if params is None else params:
-            self.state[p] = {"step": torch.zeros((), dtype=torch.float64, device=p.device),
-                             "exp_avg": torch.zeros_like(p), "exp_avg_sq": torch.zeros_like(p)}
-
-    def load_state_dict(self, state_dict):
-        super().load_state_dict(state_dict)
-        self.reset([p for p in self.params if p not in self.state])  # saved before its first step
-        for p in self.params:  # torch.optim.Adam's counts are float32 on the CPU: ours on the parameter's device
-            self.state[p]["step"] = self.state[p]["step"].to(p.device, torch.float64)
-
-    @torch.no_grad()
-    def step(self, grads):
-        grads = iter(grads)
-        for group in self.param_groups:
-            params = group["params"]
-            grad = [next(grads) for _ in params]
-            m, v, t = ([self.state[p][k] for p in params] for k in ("exp_avg", "exp_avg_sq", "step"))
-            (beta1, beta2), lr = group["betas"], group["lr"]
-            torch._foreach_add_(t, 1)
-            torch._foreach_lerp_(m, grad, 1 - beta1)
-            torch._foreach_mul_(v, beta2)
-            torch._foreach_addcmul_(v, grad, grad, 1 - beta2)
-            # p += -lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps), the corrections in float64
-            neg_step = torch._foreach_pow(beta1, t)
-            torch._foreach_sub_(neg_step, 1)  # -(1 - beta1^t), exactly
-            torch._foreach_reciprocal_(neg_step)
-            torch._foreach_mul_(neg_step, lr)
-            root = torch._foreach_pow(beta2, t)
-            torch._foreach_neg_(root)
-            torch._foreach_add_(root, 1)
-            torch._foreach_sqrt_(root)
-            denom = torch._foreach_sqrt(v)
-            torch._foreach_div_(denom, root)
-            torch._foreach_add_(denom, group["eps"])
-            torch._foreach_addcdiv_(params, torch._foreach_mul(m, neg_step), denom)
+@torch.no_grad()
+def polyak(net: nn.Module, target: nn.Module, tau: float):
+    """Polyak averaging of the target network: target <- target + tau (net - target)."""
+    for p, t in zip(net.parameters(), target.parameters()):
+        t.lerp_(p, tau)
 
 
 class Agent:
-    """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). A variant overrides
-    `std` (exploration), `next_value` (the bootstrap), `joint_loss` (Eq. 6) or `update`: drm.DrMAgent."""
+    """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). A variant
+    overrides `act`, `std`, `next_value`, `joint_loss` or `update` (methods/drm.py, foresight.py)."""
 
-    def __init__(self, cfg: Config, action_dim: int, device: torch.device):
-        self.cfg, self.device = cfg, device
-        self.method = METHODS[cfg.method]
+    def __init__(self, cfg: Config, action_dim: int, device, method: Method | None = None):
+        self.cfg, self.device, self.action_dim = cfg, torch.device(device), action_dim
+        self.method = method or METHODS[cfg.method]
         in_channels = (4 if self.method.mask_input else 3) * cfg.frame_stack
-        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs: NHWC ("channels_last"), the
-        # layout of oneDNN's and cuDNN's fastest kernels, and under --precision bf16 only they run in bf16:
-        # a TD target in bf16 would be off by up to 0.5 at Q = 100, so actor, critic and losses stay fp32.
-        nhwc = dict(device=device, memory_format=torch.channels_last)
-        if self.method.encoder == "pooled":
-            self.encoder = PooledEncoder(in_channels, cfg.latent_dim).to(**nhwc)
-        else:
-            self.encoder = DrQEncoder(in_channels).to(**nhwc)
+        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs: NHWC ("channels_last"),
+        # the layout of oneDNN's and cuDNN's fastest kernels; under --precision bf16 they alone run in
+        # bf16 (a TD target in bf16 would be off by up to 0.5 at Q = 100).
+        nhwc = dict(device=self.device, memory_format=torch.channels_last)
+        pooled = self.method.encoder == "pooled"
+        encoder = PooledEncoder(in_channels, cfg.latent_dim) if pooled else DrQEncoder(in_channels)
+        self.encoder = encoder.to(**nhwc)
         repr_dim = self.encoder.repr_dim
-        self.actor = Actor(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
-        self.critic = Critic(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(device)
+        self.actor = Actor(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(self.device)
+        self.critic = Critic(repr_dim, action_dim, cfg.feature_dim, cfg.hidden_dim).to(self.device)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.aux = self.method.aux.build(cfg, self.encoder, self.critic).to(**nhwc) if self.method.aux else None
-        # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one
-        # optimiser for all of them equals DrQ-v2's separate encoder/critic optimisers.
+        aux = self.method.aux
+        self.aux = aux.build(cfg, self.encoder, self.critic).to(**nhwc) if aux else None
+        # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one optimiser
+        # for all of them equals DrQ-v2's separate ones. fused: one kernel, and no host sync.
         model_params = [*self.encoder.parameters(), *self.critic.parameters()]
         if self.aux is not None:
             model_params += [p for p in self.aux.parameters() if p.requires_grad]
-        self.model_opt = Adam(model_params, lr=cfg.lr)
-        self.actor_opt = Adam(self.actor.parameters(), lr=cfg.lr)
-        self.metric_names = (("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread", "expl_std")
-                             + (self.aux.metric_names if self.aux else ()))
+        self.model_opt = torch.optim.Adam(model_params, lr=cfg.lr, fused=True)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr, fused=True)
+        # The agent's random numbers (acting, shifts, noise) continue torch's stream where building
+        # the networks left it (seeded by torch.manual_seed(seed) before), in a generator of its own:
+        # a seed draws the same numbers alone or beside other seeds in one process.
+        cuda = self.device.type == "cuda"
+        state = torch.cuda.get_rng_state(self.device) if cuda else torch.get_rng_state()
+        self.rng = torch.Generator(self.device).set_state(state)
+        self.metric_names = ("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread",
+                             "expl_std") + (self.aux.metric_names if self.aux else ())
 
     def std(self, step):  # the exploration std at this agent step: DrQ-v2's linear schedule
         return linear_std(self.cfg, step)
 
     def conv_precision(self):  # bf16 autocast for the convolutional networks under --precision bf16
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cfg.precision == "bf16")
+        bf16 = self.cfg.precision == "bf16"
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16)
 
     def encode(self, obs):
         with self.conv_precision():
@@ -453,134 +425,136 @@ class Agent:
         return torch.cat([rgb, m], dim=2).view(n, -1, h, w)
 
     @torch.no_grad()
-    def act(self, pixels: np.ndarray, mask: np.ndarray | None, step: int, eval_mode: bool):
-        obs = torch.as_tensor(pixels, device=self.device).float().unsqueeze(0)
-        m = None if mask is None else torch.as_tensor(mask, device=self.device).float().unsqueeze(0)
-        latent = self.encode(self.encoder_input(obs, m))
-        dist = self.actor(latent, self.std(step))
+    def act(self, obs, mask, step: int, eval_mode: bool) -> torch.Tensor:
+        """The action at one observation (the RGB stack, C x H x W, an array or a tensor; its masks,
+        read by rgbm only), a tensor on the device: the actor's mean in evaluation; in training its
+        sample with exploration noise, uniform for the first --exploration-steps agent steps."""
+        obs = torch.as_tensor(obs, device=self.device).float()[None]
+        if mask is not None and self.method.mask_input:
+            mask = torch.as_tensor(mask, device=self.device).float()[None]
+        dist = self.actor(self.encode(self.encoder_input(obs, mask)), self.std(step))
         if eval_mode:
-            action = dist.mean
-        else:
-            action = dist.sample(clip=None)
-            if step < self.cfg.exploration_steps:
-                action.uniform_(-1.0, 1.0)
-            action = action if self.aux is None else self.aux.act(action, step)
-        return action.squeeze(0).cpu().numpy().astype(np.float32)
+            return dist.mean[0]
+        action = dist.sample(noise=torch.randn(dist.loc.shape, device=self.device, generator=self.rng))
+        if step < self.cfg.exploration_steps:
+            action.uniform_(-1.0, 1.0, generator=self.rng)
+        return action[0]
 
-    def next_value(self, next_latent, std):
-        """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target critic at
-        the actor's next action with exploration noise of this `std`."""
-        next_action = self.actor(next_latent, std).sample(clip=self.cfg.std_clip)
+    def draw(self, n: int) -> Noise:
+        """The random numbers of an update on n samples, from the agent's generator, in the order
+        DrQ-v2 draws them: the update is then a function of its inputs, the same whether it runs as
+        written, compiled, as a CUDA graph or batched with other seeds (harness/speed.py)."""
+        shift = dict(size=(n, 1, 1, 2), device=self.device, dtype=torch.float32, generator=self.rng)
+        noise = dict(size=(n, self.action_dim), device=self.device, generator=self.rng)
+        high = 2 * PAD + 1
+        return Noise(torch.randint(0, high, **shift), torch.randint(0, high, **shift),
+                     torch.randn(**noise), torch.randn(**noise))
+
+    def next_value(self, next_latent, std, noise):
+        """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target critic
+        at the actor's next action with exploration noise of this `std`."""
+        next_action = self.actor(next_latent, std).sample(clip=self.cfg.std_clip, noise=noise)
         return torch.min(*self.critic_target(next_latent, next_action))
 
-    def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step):
-        """Eq. 6, the critic's TD loss plus the auxiliary loss (SEAR: c1 recon + c2 mask), on `latent`, the
-        encoding of obs_aug (mask_aug: its masks, same shift); the loss, and the logs' terms with expl_std."""
+    def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step, noise: Noise):
+        """Eq. 6, the critic's TD loss plus the auxiliary loss (SEAR: c1 recon + c2 mask), on
+        `latent`, the encoding of obs_aug (mask_aug: its masks, same shift); the loss, and the logs'
+        terms with expl_std."""
         std = self.std(step)
         with torch.no_grad():
-            next_latent = self.encode(random_shift(batch.next_obs))
-            target_q = batch.reward + batch.discount * self.next_value(next_latent, std)
+            next_latent = self.encode(random_shift(batch.next_obs, noise.next_shift))
+            target_q = batch.reward + batch.discount * self.next_value(next_latent, std, noise.target)
         q1, q2 = self.critic(latent, batch.action)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
-        loss, metrics = critic_loss, {}
-        if self.aux is not None:
-            with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
-                aux_loss, metrics = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs,
-                                             batch=batch)
-            loss = loss + aux_loss
-        return loss, {**metrics, "critic_loss": critic_loss.detach(), "q": q1.mean().detach(), "expl_std": std}
+        metrics = {"critic_loss": critic_loss.detach(), "q": q1.mean().detach(), "expl_std": std}
+        if self.aux is None:
+            return critic_loss, metrics
+        with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
+            aux_loss, terms = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs,
+                                       batch=batch, rng=self.rng)
+        return critic_loss + aux_loss, {**terms, **metrics}  # Eq. 6: L_critic + c1 L_recon + c2 L_mask
 
-    def critic_objective(self, batch: Batch, step):
-        """Eq. 6 on a batch: the loss, its terms for the logs, the latent of the augmented observation."""
-        labels = [x for x in (batch.mask, getattr(batch, "frame_ahead", None)) if x is not None]
-        obs_aug, *labels = shift_together(batch.obs, *labels)  # one shift per sample: the same draws with or without
-        mask_aug = labels.pop(0) if batch.mask is not None else None
-        batch = batch._replace(frame_ahead=labels[0]) if labels else batch  # EF's frame ahead, shifted as its context
+    def critic_objective(self, batch: Batch, step, noise: Noise):
+        """Eq. 6 on a batch: the loss, its terms for the logs, the latent of the augmented obs."""
+        if batch.mask is None:  # a method that reads no mask
+            obs_aug, mask_aug = random_shift(batch.obs, noise.shift), None
+        else:
+            obs_aug, mask_aug = shift_together(batch.obs, batch.mask, noise.shift)
         latent = self.encode(obs_aug)
-        return (*self.joint_loss(latent, obs_aug, mask_aug, batch, step), latent)
+        return (*self.joint_loss(latent, obs_aug, mask_aug, batch, step, noise), latent)
 
-    def update_critic(self, batch: Batch, step):
+    def update_critic(self, batch: Batch, step, noise: Noise):
         """One joint step on encoder, critic and decoders (Alg. 1)."""
-        loss, metrics, latent = self.critic_objective(batch, step)
-        # materialize_grads: a parameter Eq. 6 does not reach (CURL's W, which CURL steps itself) gets a
-        # zero gradient, and Adam's step of a parameter that never had a gradient is exactly 0.
-        self.model_opt.step(torch.autograd.grad(loss, self.model_opt.params, materialize_grads=True))
+        loss, metrics, latent = self.critic_objective(batch, step, noise)
+        self.model_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.model_opt.step()
         return latent.detach(), metrics
 
-    def actor_loss(self, latent, std):
+    def actor_loss(self, latent, std, noise):
         """DDPG's loss, -min(Q1, Q2) of the actor's noisy action; and the mean action, for the logs."""
         dist = self.actor(latent, std)
-        return -torch.min(*self.critic(latent, dist.sample(clip=self.cfg.std_clip))).mean(), dist.mean.detach()
+        action = dist.sample(clip=self.cfg.std_clip, noise=noise)
+        return -torch.min(*self.critic(latent, action)).mean(), dist.mean.detach()
 
-    def update_actor(self, latent, std):
-        """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
-        loss does not train the encoder; nor the critic, whose gradient is not computed at all."""
-        actor_loss, mu = self.actor_loss(latent, std)
-        self.actor_opt.step(torch.autograd.grad(actor_loss, self.actor_opt.params))
+    def update_actor(self, latent, std, noise):
+        """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this loss
+        trains no encoder; nor the critic, whose gradient is not even computed (`inputs`)."""
+        actor_loss, mu = self.actor_loss(latent, std, noise)
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward(inputs=list(self.actor.parameters()))
+        self.actor_opt.step()
         return actor_metrics(actor_loss, mu)
 
     def update(self, batch: Batch, step: int) -> dict:
         """One update on a replay batch (arrays or tensors, on any device) at agent step `step`.
         Returns its metrics as 0-d tensors on the device: read them when a log line is written."""
-        make = type(batch)._make if hasattr(batch, "_make") else Batch._make  # a Batch, or a method's (EF's Window)
-        batch = make(torch.as_tensor(x, device=self.device) for x in batch)  # a ring's: there already
+        make = type(batch)._make if hasattr(batch, "_make") else Batch._make  # EF's Window too
+        batch = make(None if x is None else torch.as_tensor(x, device=self.device) for x in batch)
         if not self.method.uses_mask:  # neither shifted nor read
             batch = batch._replace(mask=None, next_mask=None)
-        return self.learn(batch, torch.full((), step, dtype=torch.float64, device=self.device))
+        step = torch.full((), step, dtype=torch.float64, device=self.device)
+        return self.learn(batch, step, self.draw(len(batch.obs)))
 
-    def learn(self, batch: Batch, step: torch.Tensor) -> dict:
-        """The update, tensors in and out (what --compile takes whole): the joint step of Eq. 6, the actor's,
-        Polyak averaging, a method's own step (CURL's). `step`: the agent step, a float64 0-d tensor."""
+    def learn(self, batch: Batch, step: torch.Tensor, noise: Noise) -> dict:
+        """The update, tensors in and out: the joint step of Eq. 6, the actor's, Polyak averaging,
+        a method's own step (CURL's). `step`: the agent step, a float64 0-d tensor."""
         batch = type(batch)._make(None if x is None else x.float() for x in batch)
         batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
                                next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
-        latent, metrics = self.update_critic(batch, step)
-        metrics.update(self.update_actor(latent, metrics["expl_std"]))  # the std the critic's target used
-        with torch.no_grad():  # Polyak averaging of the target critic
-            torch._foreach_lerp_(list(self.critic_target.parameters()), list(self.critic.parameters()),
-                                 self.cfg.critic_tau)
+        latent, metrics = self.update_critic(batch, step, noise)
+        metrics.update(self.update_actor(latent, metrics["expl_std"], noise.actor))  # the same std
+        polyak(self.critic, self.critic_target, self.cfg.critic_tau)
         if self.aux is not None:  # CURL's own step, last as in curl_sac.py
-            metrics.update(self.aux.after_update(batch.obs))
+            metrics.update(self.aux.after_update(batch.obs, self.rng))
         return metrics
 
-    def compile(self):
-        """--compile: learn() as one torch.compile graph (a break is an error, on the CPU too), a CUDA graph on
-        CUDA. Eager stays the reference: on the CPU it draws eager's numbers (fallback_random), equal to rounding."""
-        import torch._dynamo
-        import torch._inductor.config
-        torch._dynamo.config.trace_autograd_ops = True  # torch.autograd.grad inside the graph
-        torch._inductor.config.fallback_random = True
-        held = [*vars(self).values(), *vars(self.aux or nn.Module()).values()]  # optimisers, DrM's state
-        for t in [t for opt in held if isinstance(opt, Adam) for state in opt.state.values() for t in state.values()] \
-                + [t for t in held if torch.is_tensor(t)]:
-            torch._dynamo.mark_static_address(t)  # updated in place by the graph: its address must not move
-        cuda_graph = "reduce-overhead" if self.device.type == "cuda" else None
-        graph = torch.compile(self.learn, fullgraph=True, mode=cuda_graph)
-        # A CUDA graph's outputs are overwritten by its next replay; the metrics wait for a log line.
-        self.learn = lambda batch, step: {k: v.clone() for k, v in graph(batch, step).items()}
-
-    PARTS = ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux")  # aux: None for drq
+    PARTS = ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux")
 
     def state_dict(self):
-        return {name: None if getattr(self, name) is None else getattr(self, name).state_dict() for name in self.PARTS}
+        parts = {name: getattr(self, name) for name in self.PARTS}
+        return {**{k: None if v is None else v.state_dict() for k, v in parts.items()},
+                "rng": self.rng.get_state()}
 
     def load_state_dict(self, state):
         for name in (name for name in self.PARTS if getattr(self, name) is not None):
             getattr(self, name).load_state_dict(state[name])
+        if "rng" in state:  # older snapshots kept torch's global stream instead: the loop sets it
+            self.rng.set_state(state["rng"])
 
 
 # ================================================================================================
 # 6. Replay buffer
 # ================================================================================================
 class ReplayBuffer:
-    """A ring of time steps in tensors on `device` (the run's GPU when it fits there). Slot i holds the
-    newest RGB frame of step i (uint8, stored once), its robot mask bit-packed (np.packbits: 882 bytes for
-    84x84), the action and reward that led to it, whether it is terminal, whether it starts an episode.
-    Frame stacks (never across an episode start: the first frame repeats, as at reset), unpacked masks
-    and n-step returns are built at sampling, on the device. A time-limit end bootstraps; a termination
-    does not. Draws follow DrQ-v2's loader (replay_buffer.py _sample): an episode uniformly among the
-    finished ones whole in the ring, then a start whose n-step window lies in it; the index and the draws
-    stay on the host (numpy): the start times are a batch's only host->device copy."""
+    """A ring of time steps in tensors on `device` (the host; harness/speed.py may put it on the
+    run's GPU). Slot i holds the newest RGB frame of step i (uint8, stored once), its robot mask
+    bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led to it, whether it
+    is terminal, whether it starts an episode. Frame stacks (never across an episode start: the
+    first frame repeats, as at reset), unpacked masks and n-step returns are built at sampling. A
+    time-limit end bootstraps; a termination does not. Draws follow DrQ-v2's loader (replay_buffer.py
+    _sample): an episode uniformly among the finished ones whole in the ring, then a start whose
+    n-step window lies in it; the index and the draws stay on the host (numpy)."""
 
     def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu"):
         self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
@@ -595,9 +569,9 @@ class ReplayBuffer:
         self.terminal = torch.empty((capacity,), dtype=torch.bool, **ring)
         self.first = torch.empty((capacity,), dtype=torch.bool, **ring)
         self.t = 0  # slots ever written; slot of time step t is t % capacity
-        self.episodes = np.zeros((0, 2), np.int64)  # (first time, steps) of the finished, drawable episodes
+        self.episodes = np.zeros((0, 2), np.int64)  # (first time, steps) of the drawable episodes
         self.running = -1  # first time of the running episode
-        self.bits = torch.arange(7, -1, -1, dtype=torch.uint8, device=self.device)  # np.packbits' order
+        self.bits = torch.arange(7, -1, -1, dtype=torch.uint8, device=self.device)  # packbits' order
 
     ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
 
@@ -611,26 +585,27 @@ class ReplayBuffer:
     def _write(self, obs, action, reward, terminal, first):
         i = self.t % self.capacity
         self.frames[i] = torch.as_tensor(obs["pixels"][-3:])
-        self.masks[i] = torch.from_numpy(np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1)))
+        mask = np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1))
+        self.masks[i] = torch.from_numpy(mask)
         self.actions[i] = torch.as_tensor(action)
         self.rewards[i], self.terminal[i], self.first[i] = float(reward), bool(terminal), bool(first)
         self.t += 1
 
     def add_first(self, obs):
-        """The observation returned by reset(): the episode before it is finished, drawn from now on
-        if an n-step window fits in it (DrQ-v2's loader fails on a shorter one)."""
+        """The observation returned by reset(): the episode before it is finished, drawn from now
+        on if an n-step window fits in it (DrQ-v2's loader fails on a shorter one)."""
         if self.t - 1 - self.running >= self.nstep:
-            kept = self.episodes[self.episodes[:, 0] >= self.t - self.capacity]  # still whole in the ring
+            kept = self.episodes[self.episodes[:, 0] >= self.t - self.capacity]  # still whole
             self.episodes = np.append(kept, [[self.running, self.t - 1 - self.running]], axis=0)
         self.running = self.t
         self._write(obs, 0.0, 0.0, False, True)
 
     def add(self, action, reward, terminated, obs):
-        """One env.step(): the action taken, the reward it earned, and the observation it led to."""
+        """One env.step(): the action taken, the reward it earned, the observation it led to."""
         self._write(obs, action, reward, terminated, False)
 
     def load_arrays(self, arrays) -> None:
-        """A saved ring back (a wrapped one in the same slots), the episode index rebuilt from its `first` flags."""
+        """A saved ring back (a wrapped one in the same slots), the episode index from `first`."""
         n = len(arrays["rewards"])
         for a in self.ARRAYS:
             getattr(self, a)[:n] = torch.from_numpy(np.asarray(arrays[a]))
@@ -650,24 +625,24 @@ class ReplayBuffer:
         return len(self.drawable(max(0, self.t - self.capacity + margin))) > 0
 
     def sample(self, batch_size, rng: np.random.Generator, margin=0) -> Batch | None:
-        """A batch of transitions drawn with `rng`, or None while no episode can be drawn. margin: the
-        oldest slots kept out of the draws (a sampler thread reads while the loop overwrites them)."""
+        """A batch of transitions drawn with `rng`, or None while no episode can be drawn. margin:
+        the oldest slots kept out of the draws (a sampler thread reads while the loop writes them)."""
         lo = max(0, self.t - self.capacity + margin)
         return self.batch(self.draw_starts(batch_size, rng, lo), rng) if len(self.drawable(lo)) else None
 
-    def batch(self, times, rng: np.random.Generator):  # a batch of these starts (EF's adds windows)
+    def batch(self, times, rng: np.random.Generator):  # the batch of these starts (EF's adds windows)
         return self.transitions(times)
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
         """n start times: an episode uniformly among those drawable from lo, then a start from which
-        all n steps lie inside it (DrQ-v2's idx range: an episode's last n-1 steps never start one)."""
+        all n steps lie inside it (DrQ-v2's idx range: an episode's last n-1 steps start none)."""
         first, steps = self.drawable(lo).T
         e = rng.integers(len(first), size=n)
         return first[e] + rng.integers(0, steps[e] - self.nstep + 1)
 
     def stacked(self, times):
-        """The frame stacks and mask stacks at `times` (a device tensor): walk back from each time, never
-        past an episode start (the frame there is repeated instead), oldest frame first."""
+        """The frame stacks and mask stacks at `times` (a device tensor): walk back from each time,
+        never past an episode start (the frame there repeats instead), oldest frame first."""
         idx = [times]
         for _ in range(self.stack - 1):
             idx.append(torch.where(self.first[idx[-1] % self.capacity], idx[-1], idx[-1] - 1))
@@ -678,8 +653,9 @@ class ReplayBuffer:
         return pixels, bits.view(b, self.stack, -1)[..., :h * w].view(b, self.stack, h, w)
 
     def transitions(self, times) -> Batch:
-        """The n-step transitions from `times` (each inside one episode): R = sum_k gamma^(k-1) r_(t+k) and the
-        bootstrap discount gamma^n, 0 if the episode terminated at t+n (float32, in numpy's order)."""
+        """The n-step transitions from `times` (each inside one episode): R = sum_k gamma^(k-1)
+        r_(t+k) and the bootstrap discount gamma^n, 0 if the episode terminated at t+n (float32,
+        in numpy's order)."""
         times = torch.as_tensor(np.asarray(times, dtype=np.int64)).to(self.device, non_blocking=True)
         ret, gamma_n = torch.zeros(len(times), device=self.device), np.float32(1.0)
         for k in range(1, self.nstep + 1):
@@ -694,7 +670,8 @@ class ReplayBuffer:
         return Batch(obs, mask, action, ret[:, None], discount[:, None], next_obs, next_mask)
 
 
-if __name__ == "__main__":  # the training loop, the flags and the run harness stand on this file in train.py
+if __name__ == "__main__":  # the loop, the flags and the run harness stand on this file: train.py
     import os
     import runpy
-    runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py"), run_name="__main__")
+    here = os.path.dirname(os.path.abspath(__file__))
+    runpy.run_path(os.path.join(here, "train.py"), run_name="__main__")

@@ -1,9 +1,10 @@
-"""The training loop of sear.py's agent, drqv2's train.py to its drqv2.py: the experiment's settings
-(Config), evaluation, and `train` (build env, agent, buffer; reset / act / step / add / update).
+"""The training loop of sear.py's agent, as drqv2's train.py to its drqv2.py: the experiment's
+settings (Config), the agent and the replay of each method, evaluation, and `train`: one loop for one
+seed (--seed k) or several in lockstep (--seeds 1-16), each seed the run --seed k is.
 `python sear.py ...` and `python train.py ...` are the same command.
 
-Around it: experiment.py (envs, the run directory, logs, snapshots, progress, evaluation metrics) and
-cli.py (flags, recipes, checks, device, threads); baselines.py and drm.py add their methods and flags.
+Around it: harness/ (the command line, the run directories, the seeds' envs, the speed layer) and
+methods/ (the paper's baselines, Ego-Foresight, DrM).
 
 Usage:  python sear.py --env walker-walk-distracting [--method sear] [--seed 1]
         python sear.py --resume runs/<run dir>     |     python sear.py --evaluate runs/<run dir>
@@ -13,7 +14,6 @@ from __future__ import annotations
 import random
 import sys
 import time
-import types
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -21,11 +21,12 @@ import numpy as np
 import torch
 
 import sear
-from harness import cli, experiment, group
+from harness import cli, experiment, group, runenvs, speed
 from methods import baselines, drm, foresight
 from sear import Agent, ReplayBuffer, arg
 
-METHODS = sear.METHODS  # SEAR's and DrQ-v2's rows, and (imported above) the baselines' and EF's
+# Every --method: SEAR's and DrQ-v2's rows, the paper's baselines' and Ego-Foresight's.
+METHODS = {**sear.METHODS, **baselines.METHODS, **foresight.METHODS}
 
 
 @dataclass
@@ -45,8 +46,38 @@ class Config(sear.Config, baselines.BaselineConfig, foresight.ForesightConfig, d
 
 
 def make_agent(cfg: Config, action_dim: int, device: torch.device) -> Agent:
-    """The run's agent: sear.Agent, or with --drm drm.DrMAgent."""
-    return (drm.DrMAgent if cfg.drm else Agent)(cfg, action_dim, device)
+    """The run's agent: sear.Agent, Ego-Foresight's (foresight.ForesightAgent), and with --drm
+    DrM's on top (drm.DrMAgent first in the order of the methods each overrides)."""
+    agent = foresight.ForesightAgent if cfg.method == "ef" else Agent
+    if cfg.drm:
+        both = (drm.DrMAgent, agent)
+        agent = drm.DrMAgent if agent is Agent else type("DrM" + agent.__name__, both, {})
+    return agent(cfg, action_dim, device, METHODS[cfg.method])
+
+
+def make_replay(cfg: Config, *args, **kwargs) -> ReplayBuffer:
+    """The run's replay buffer: sear.ReplayBuffer, or Ego-Foresight's windows."""
+    if cfg.method == "ef":
+        return foresight.make_replay(cfg, *args, **kwargs)
+    return ReplayBuffer(*args, **kwargs)
+
+
+def seed_everything(seed):
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def act(agents: list[Agent], obs: dict, step: int, eval_mode: bool) -> np.ndarray:
+    """Every seed's action (seed first): the seeds' observations cross to the device in one copy
+    (the masks only for a method that reads them), each seed's agent acts on its own, and the
+    actions come back in one read."""
+    device = agents[0].device
+    pixels = torch.as_tensor(obs["pixels"]).to(device)
+    masks = torch.as_tensor(obs["mask"]).to(device) if agents[0].method.mask_input else None
+    actions = [a.act(pixels[i], None if masks is None else masks[i], step, eval_mode)
+               for i, a in enumerate(agents)]
+    return torch.stack(actions).cpu().numpy()
 
 
 # ================================================================================================
@@ -59,157 +90,188 @@ class Episode(NamedTuple):
     task: str | None      # the task of a task set, else None
 
 
-def evaluate(agent: Agent, env, cfg: Config, step: int, on_step=None, stop=None) -> list[Episode]:
-    """Episodes with the mean action on the eval env, from the same reset seeds at every evaluation
-    (so that evaluations compare); a task set runs each of its tasks (experiment.eval_tasks).
-    on_step(episode, t), if given, is called after every step (the progress line); stop(), if given,
-    before every episode: once it is true the evaluation ends there, with fewer episodes (a first
-    SIGTERM cuts an evaluation at an episode end)."""
-    episodes = []
-    for i, task in enumerate(experiment.eval_tasks(env, cfg)):
+def evaluate(agents, envs: runenvs.SeedEnvs, step: int, watches=None, on_step=None, stop=None):
+    """Every seed's evaluation episodes with the mean action, side by side, each seed's episode e
+    from the reset seed of a single run of that seed (the same at every evaluation, so that they
+    compare); a task set runs each of its tasks (runenvs.eval_tasks). `watches` (one per seed) see
+    every observation (decoder metrics, videos); on_step(episode, t) is called after every step;
+    stop() before every episode: once true the evaluation ends there, with fewer episodes (a first
+    SIGTERM cuts an evaluation at an episode end). Returns each seed's Episodes."""
+    n, cfg = len(agents), agents[0].cfg
+    stacks, episodes = runenvs.Stacks(n, cfg.frame_stack, envs.frame_shape), [[] for _ in agents]
+    for e, task in enumerate(runenvs.eval_tasks(envs.tasks, cfg)):
         if stop is not None and stop():
             break
-        obs, info = env.reset(seed=experiment.episode_seed(cfg.seed + experiment.EVAL_SEED, i),
-                              options=None if task is None else {"task": task})
-        done, ret, success, t = False, 0.0, False, 0
-        while not done:
-            action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=True)
-            obs, reward, terminated, truncated, info = env.step(action)
-            ret += reward
-            success = success or bool(info.get("success", False))
-            done = terminated or truncated
+        seeds = [runenvs.episode_seed(a.cfg.seed + runenvs.EVAL_SEED, e) for a in agents]
+        newest, _ = envs.reset("eval", np.ones(n, bool), seeds, None if task is None else {"task": task})
+        stacks.reset(slice(None), newest)
+        running, ret, success, last, t = np.ones(n, bool), np.zeros(n), np.zeros(n, bool), {}, 0
+        for i, watch in enumerate(watches or ()):
+            watch.see(stacks.seed(i), new_episode=True)
+        while running.any():
+            newest, reward, terminated, truncated, infos = envs.step("eval", act(agents, stacks.obs, step, True))
+            stacks.push(running, newest)
             t += 1
+            for i in np.flatnonzero(running):
+                info = last[i] = runenvs.seed_info(infos, i)
+                ret[i] += reward[i]
+                success[i] |= bool(info.get("success", False))
+                if watches:
+                    watches[i].see(stacks.seed(i))
+            ended = running & (terminated | truncated)
+            for i in np.flatnonzero(ended):
+                episodes[i].append(Episode(ret[i], success[i] if "success" in last[i] else None, task))
+            running &= ~ended
             if on_step:
-                on_step(i, t)
-        episodes.append(Episode(ret, success if "success" in info else None, task))
+                on_step(e, t)
     return episodes
+
+
+def evaluate_and_log(agents, envs, runs: group.Runs) -> None:
+    """An evaluation of every seed now: its episodes scored and filmed by each run dir, eval.csv's
+    row. While a first SIGTERM waits there is none, and one it cuts short at an episode end leaves
+    last_eval_frame as it was: the run stops at its stop point, and the resumed run evaluates again."""
+    if runs.dirs[0].stop_pending():
+        return
+    watches = runs.each("start_eval", envs.tasks)
+    lead = runs.dirs[0]
+    episodes = evaluate(agents, envs, lead.counters.step, watches, on_step=runs.show_eval,
+                        stop=lead.stop_pending)
+    learned_iou = envs.call("eval", "pop") if runenvs.measures_learned_iou(lead.cfg) else [None] * len(runs)
+    for i, d in enumerate(runs):
+        if runs.call(i, "end_eval", episodes[i], learned_iou[i]):
+            # False: cut short
+            d.counters.last_eval_frame = d.counters.step * d.cfg.action_repeat
+    runs.say_eval(episodes)
+
 
 # ================================================================================================
 # The training loop
 # ================================================================================================
-def seed_everything(seed):
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
 def eval_due(frame: int, last_eval_frame: int, every: int) -> bool:
     """drqv2's Every, in frames: a multiple of `every` lies in (last evaluation, frame]. Frame 0 is
     one (last_eval_frame starts at -1)."""
     return frame // every > last_eval_frame // every
 
 
-def evaluate_and_log(agent: Agent, eval_env, cfg: Config, counters, rundir) -> None:
-    """An evaluation now: its episodes scored and filmed by the run dir, eval.csv's row, the
-    counter. While a first SIGTERM waits there is none, and one it cuts short at an episode end
-    leaves the counter: the run stops at its next safe point, and the resumed run evaluates
-    again."""
-    if rundir.stop_pending():
-        return
-    # the eval env, scored by the decoders, filmed with --save-video
-    env = rundir.start_eval(eval_env)
-    episodes = evaluate(agent, env, cfg, counters.step, on_step=rundir.show_eval,
-                        stop=rundir.stop_pending)
-    if rundir.end_eval(episodes):  # False: cut short
-        counters.last_eval_frame = counters.step * cfg.action_repeat
-
-
-def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None) -> str:
-    """Train from scratch, or continue from `snapshot` (the last one of the run dir run.resume);
-    returns the run directory. The loop decides when to evaluate, snapshot and stop; the
-    experiment.RunDir writes config.json, the logs and the snapshots it is handed and turns a
-    Ctrl-C, a SIGTERM or a storage error into one line."""
-    with experiment.RunDir(cfg, run, snapshot) as rundir:
-        device = cli.torch_setup(run)
-        train_env, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask)
-        action_dim = train_env.action_space.shape[0]
-        source = experiment.init_source(cfg, run, action_dim) if run.init_from and not snapshot else None
-        rundir.create()  # a new run's directory and config.json, now that every input is checked
-
+def build(runs: group.Runs, envs: runenvs.SeedEnvs, run: cli.RunConfig, device, source=None):
+    """Each seed's agent (its networks drawn after torch.manual_seed(seed), as a single run of the
+    seed draws them; with --init-from, `source`'s networks copied in), replay and sampling RNG, a
+    resumed seed's restored; then the speed layer's samplers and learner (harness/speed.py)."""
+    agents, buffers, rngs = [], [], []
+    for d in runs:
+        cfg = d.cfg
         seed_everything(cfg.seed)
-        sample_rng = np.random.default_rng(cfg.seed)
-        agent = make_agent(cfg, action_dim, device)
-        if source is not None:  # transfer: start from another run's networks
-            experiment.copy_parts(agent, source, run.init_parts)
-        if run.compile:  # the whole update as one graph (a CUDA graph on CUDA); eager otherwise
-            agent.compile()
-        replay = dict(frame_shape=(3, *train_env.observation_space["pixels"].shape[1:]), action_dim=action_dim,
-                      frame_stack=cfg.frame_stack, nstep=cfg.nstep, discount=cfg.discount)
-        ring_bytes = cfg.replay_size * ReplayBuffer(1, **replay).bytes_per_transition
-        buffer = (agent.aux.replay if agent.aux is not None else ReplayBuffer)(  # a method's own (EF's windows)
-            cfg.replay_size, **replay, device=experiment.replay_device(run, device, ring_bytes))
-        prefetcher = experiment.prefetcher(buffer, cfg, run, sample_rng, device)  # or None
-        sampler = prefetcher or buffer
-        counters = rundir.start(agent, buffer, sample_rng)  # fresh, or the snapshot's
-        snapshot_clock = time.monotonic()  # every --snapshot-minutes, at the next episode end
+        agents.append(make_agent(cfg, envs.action_dim, device))
+        if source is not None:
+            experiment.copy_parts(agents[-1], source, run.init_parts)
+        ring = dict(frame_shape=envs.frame_shape, action_dim=envs.action_dim, frame_stack=cfg.frame_stack,
+                    nstep=cfg.nstep, discount=cfg.discount)
+        ring_bytes = len(runs) * cfg.replay_size * ReplayBuffer(1, **ring).bytes_per_transition
+        buffers.append(make_replay(cfg, cfg.replay_size, **ring,
+                                   device=speed.replay_device(run, device, ring_bytes)))
+        rngs.append(np.random.default_rng(cfg.seed))
+    runs.start(agents, buffers, rngs)
+    samplers = [runs.closing(speed.prefetcher(b, d.cfg, run, r, device)) or b
+                for b, d, r in zip(buffers, runs, rngs)]
+    return agents, buffers, samplers, speed.Learner(agents, run, device)
 
-        frame = counters.step * cfg.action_repeat
-        while frame < cfg.frames:  # drqv2's Until, in frames
-            if not counters.mid_episode:  # between episodes: a first SIGTERM stops here
-                rundir.safe_point()
-                if eval_due(frame, counters.last_eval_frame, cfg.eval_every):
-                    evaluate_and_log(agent, eval_env, cfg, counters, rundir)
-                    rundir.safe_point()  # after an evaluation a SIGTERM cut short: redone on resume
-                counters.mid_episode = True
-                obs, info = train_env.reset(seed=experiment.episode_seed(cfg.seed, counters.episode))
-                buffer.add_first(obs)
-                ep_return, ep_len, ep_success = 0.0, 0, False
-            elif eval_due(frame, counters.last_eval_frame, cfg.eval_every):  # inside an episode
-                evaluate_and_log(agent, eval_env, cfg, counters, rundir)
 
+def start_episodes(runs: group.Runs, envs, buffers, stacks, which, ep) -> None:
+    """Seeds `which` (a mask) start their next episodes, each from its reset seed."""
+    seeds = [runenvs.episode_seed(d.cfg.seed, d.counters.episode) for d in runs]
+    stacks.reset(which, envs.reset("train", which, seeds)[0])
+    for i in np.flatnonzero(which):
+        buffers[i].add_first(stacks.seed(i))
+        runs.dirs[i].counters.mid_episode, ep[i] = True, 0
+
+
+def end_steps(runs: group.Runs, buffers, stacks, actions, results, ep) -> None:
+    """Every seed's step taken: its replay, its counters, its episode; an ended episode logged."""
+    _, rewards, terminated, truncated, infos = results
+    for i, d in enumerate(runs):
+        buffers[i].add(actions[i], rewards[i], terminated[i], stacks.seed(i))
+        d.counters.step += 1
+        info = runenvs.seed_info(infos, i)
+        ep[i, 0], ep[i, 1] = ep[i, 0] + rewards[i], ep[i, 1] + 1
+        ep[i, 2] = ep[i, 2] or bool(info.get("success", False))
+        if terminated[i] or truncated[i]:
+            runs.log_episode(i, float(ep[i, 0]), int(ep[i, 1]), bool(ep[i, 2]), info)
+            d.counters.episode, d.counters.mid_episode = d.counters.episode + 1, False
+        else:
+            runs.show_step(i, int(ep[i, 1]))
+
+
+def update_due(frame, step, cfg: Config, samplers, buffers) -> bool:
+    """Whether the agents update at this step: every --update-every agent steps once every replay
+    holds the seed frames' steps (after the random phase, and again after a resume that could not
+    bring its buffer back)."""
+    return (frame >= cfg.seed_frames and step % cfg.update_every == 0
+            and all(s.can_sample() and len(b) >= cfg.seed_frames // cfg.action_repeat
+                    for s, b in zip(samplers, buffers)))
+
+
+def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None, seeds=None, group_dir=None):
+    """Train the run's seeds from scratch, or on from their snapshots (one seed, or --seeds in
+    lockstep); returns the run directory (a group's folder). The loop decides when to evaluate,
+    snapshot and stop; the run directories write what they are handed, and turn a Ctrl-C, a
+    SIGTERM or a storage error into one line."""
+    with group.Runs(cfg, run, snapshot, seeds, group_dir) as runs:
+        device = cli.torch_setup(run)
+        envs = runs.closing(runenvs.SeedEnvs([cli.config_dict(d.cfg, d.run) for d in runs],
+                                             METHODS[cfg.method].uses_mask, workers=len(runs) > 1))
+        source = experiment.init_source(cfg, run, envs.action_dim) if run.init_from and not snapshot else None
+        runs.create()
+        agents, buffers, samplers, learner = build(runs, envs, run, device, source)
+        lead, cfg, n = runs.dirs[0], runs.dirs[0].cfg, len(runs)
+        stacks, ep = runenvs.Stacks(n, cfg.frame_stack, envs.frame_shape), np.zeros((n, 3))
+        clock = time.monotonic()
+        while True:
+            c = lead.counters
+            frame, final = c.step * cfg.action_repeat, c.step * cfg.action_repeat >= cfg.frames
+            if eval_due(frame, c.last_eval_frame, cfg.eval_every) or final and c.last_eval_frame != frame:
+                evaluate_and_log(agents, envs, runs)
+            between = np.array([not d.counters.mid_episode for d in runs])
+            if between.all() or final:
+                # The one stop point: a first SIGTERM stops every seed here (with its snapshot).
+                runs.safe_point()
+                if final:
+                    break
+                if time.monotonic() - clock >= 60 * run.snapshot_minutes:
+                    runs.snapshot()
+                    clock = time.monotonic()
+            if between.any():
+                start_episodes(runs, envs, buffers, stacks, between, ep)
             # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps
             # agent steps (Agent.act), then the actor plus noise, not updated in the seed frames.
-            action = agent.act(obs["pixels"], obs["mask"], counters.step, eval_mode=False)
-            # Learning starts once the buffer holds the seed frames' steps: after the random
-            # phase of a new run, and again after a resume that could not bring its buffer back.
-            if (frame >= cfg.seed_frames and counters.step % cfg.update_every == 0 and sampler.can_sample()
-                    and len(buffer) >= cfg.seed_frames // cfg.action_repeat):
-                batch = prefetcher.next() if prefetcher else buffer.sample(cfg.batch_size, sample_rng)
-                rundir.log_update(agent.update(batch, counters.step))
-
-            obs, reward, terminated, truncated, info = train_env.step(action)
-            buffer.add(action, reward, terminated, obs)
-            counters.step += 1
-            frame = counters.step * cfg.action_repeat
-            ep_return += reward
-            ep_len += 1
-            ep_success = ep_success or bool(info.get("success", False))
-            if terminated or truncated:
-                rundir.log_episode(ep_return, ep_len, ep_success, info)  # train.csv, progress line
-                counters.episode, counters.mid_episode = counters.episode + 1, False
-                if frame < cfg.frames and time.monotonic() - snapshot_clock >= 60 * run.snapshot_minutes:
-                    rundir.snapshot()  # between episodes: a resume continues exactly
-                    snapshot_clock = time.monotonic()
-            else:
-                rundir.show_step(ep_len)
-
-        if counters.last_eval_frame != frame:  # the budget ends with an evaluation at its end
-            evaluate_and_log(agent, eval_env, cfg, counters, rundir)
-            rundir.safe_point()  # cut short by a SIGTERM: the snapshot's resume evaluates again
-        rundir.finish()  # the final snapshot
-        for closing in (prefetcher, train_env, eval_env):
-            if closing is not None:
-                closing.close()
-        return rundir.path
+            actions = act(agents, stacks.obs, c.step, eval_mode=False)
+            if update_due(frame, c.step, cfg, samplers, buffers):
+                batches = [s.sample(cfg.batch_size, d.sample_rng) if s is b else s.next()
+                           for s, b, d in zip(samplers, buffers, runs)]
+                runs.log_updates(learner.update(batches, c.step))
+            results = envs.step("train", actions)
+            stacks.push(slice(None), results[0])
+            end_steps(runs, buffers, stacks, actions, results, ep)
+        return runs.finish()
 
 
 def evaluate_snapshot(cfg: Config, run: cli.RunConfig, snapshot: dict) -> None:
-    """--evaluate RUN_DIR: the snapshot's agent on the run's eval env, scored and printed (no training)."""
+    """--evaluate RUN_DIR: the snapshot's agent on the run's eval env, scored and printed."""
     device = cli.torch_setup(run)
-    _, eval_env = experiment.make_envs(cfg, METHODS[cfg.method].uses_mask, train=False)
-    agent = make_agent(cfg, eval_env.action_space.shape[0], device)
-    experiment.score_snapshot(cfg, run, snapshot, agent, eval_env, evaluate)
+    envs = runenvs.SeedEnvs([cli.config_dict(cfg, run)], METHODS[cfg.method].uses_mask, workers=False)
+    try:
+        agent = make_agent(cfg, envs.action_dim, device)
+        experiment.score_snapshot(cfg, run, snapshot, agent, envs, evaluate)
+    finally:
+        envs.close()
 
 
 def main(argv=None) -> int:
-    """`python sear.py --flag value ...` (or train.py): 0 when done; bad input (2), Ctrl-C (130) and SIGTERM
-    (143) end in one line. `--seeds 1-16` (or --resume of a group's folder) trains several seeds at once
-    (group.py)."""
+    """`python sear.py --flag value ...` (or train.py): 0 when done; bad input (2), Ctrl-C (130) and
+    SIGTERM (143) end in one line. `--seeds 1-16` (or --resume of a group's folder) trains several
+    seeds in one loop (harness/group.py)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if group.wanted(argv):
-        parts = types.SimpleNamespace(make_agent=make_agent, Episode=Episode, eval_due=eval_due)
-        return group.main(argv, Config, METHODS, parts)
-    return cli.main(argv, Config, METHODS, train, evaluate_snapshot)
+    return group.main(argv, Config, METHODS, train, evaluate_snapshot)
 
 
 if __name__ == "__main__":

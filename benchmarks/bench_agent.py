@@ -239,7 +239,7 @@ def step_split(args):
     (an update every `update_every` steps, as in training; the table gives the per-step share)."""
     cfg = train.Config(env=args.env, method=args.split_method, batch_size=args.batch_size, precision=args.precisions[0],
                       render_quality="fast", replay_size=2_000)
-    train_env, eval_env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
+    train_env, eval_env = runenvs.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
     agent = train.make_agent(cfg, train_env.action_space.shape[0], torch.device(args.device))
     buffer = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), train_env.action_space.shape[0], cfg.frame_stack,

@@ -50,7 +50,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     cfg, state = plot.load_snapshot_run(args.run_dir)
     cfg.eval_episodes, cfg.max_episode_steps = args.episodes, args.max_episode_steps
-    _, env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
+    _, env = runenvs.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     agent = plot.trained_agent(cfg, state, env.action_space.shape[0])
     step = state["counters"]["step"]
     with tempfile.TemporaryDirectory() as tmp:

@@ -30,7 +30,7 @@ import train  # noqa: E402
 def batches_from_env(env_name, n_batches, batch_size, seed=0):
     """Real frames: random-action episodes of `env_name` in a replay buffer, then fixed samples."""
     cfg = train.Config(env=env_name, render_quality="fast", replay_size=4_000)
-    train_env, eval_env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
+    train_env, eval_env = runenvs.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
     adim = train_env.action_space.shape[0]
     buf = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), adim, cfg.frame_stack, cfg.nstep, cfg.discount)

@@ -168,7 +168,7 @@ def compare_replay(args):
 def compare_policy(args):
     import torch
 
-    from harness import experiment
+    from harness import experiment, runenvs
     import sear
     import train
     try:
@@ -178,7 +178,7 @@ def compare_policy(args):
     cfg, _ = cli.split_config(snapshot["config"], train.Config)
     torch.set_num_threads(args.threads)
     method = sear.METHODS[cfg.method]
-    train_env, eval_env = experiment.make_envs(cfg, method.uses_mask)
+    train_env, eval_env = runenvs.make_envs(cfg, method.uses_mask)
     agent = train.make_agent(cfg, train_env.action_space.shape[0], torch.device("cpu"))
     agent.load_state_dict(snapshot["agent"])
     step = snapshot["counters"]["step"]
@@ -194,7 +194,7 @@ def compare_policy(args):
         returns, actions = [], []
         for i in range(args.episodes):
             actions.append([])
-            obs, _ = env.reset(seed=experiment.episode_seed(seed, first + i))
+            obs, _ = env.reset(seed=runenvs.episode_seed(seed, first + i))
             done, ret = False, 0.0
             while not done:
                 if sample_std is None:

@@ -35,11 +35,11 @@ def main() -> None:
 
     cfg = train.Config(env=args.env, action_repeat=args.action_repeat, seed=args.seed, method="drq",
                       render_quality=args.render_quality)
-    _, env = experiment.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)  # the eval env: the run's evaluation seeds and settings
+    _, env = runenvs.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)  # the eval env: the run's evaluation seeds and settings
     rng = np.random.default_rng(args.seed)
     returns = []
     for i in range(args.episodes):
-        env.reset(seed=experiment.episode_seed(cfg.seed + 100_000, i))
+        env.reset(seed=runenvs.episode_seed(cfg.seed + 100_000, i))
         done, ret = False, 0.0
         while not done:
             _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))

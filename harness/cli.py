@@ -42,9 +42,13 @@ class RunConfig:
     logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt, all but the
     fields marked saved=False (--evaluate: a command, not a setting of the run)."""
     device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N")
-    compile: bool = arg(False, "the whole update through torch.compile as one graph, replayed as a CUDA graph on "
-                               "CUDA; equal to eager within rounding. The first update compiles (minutes on a CPU); "
-                               "docs/speed.md has its speed")
+    compile: str = arg("auto", "auto (on with CUDA) | on | off: the update through torch.compile (harness/speed.py); "
+                               "equal to the plain update within rounding; its first update compiles (minutes)",
+                       ("auto", "on", "off"))
+    cuda_graph: str = arg("auto", "auto (on with CUDA) | on | off: the update captured once as a CUDA graph and "
+                                  "replayed (harness/speed.py)", ("auto", "on", "off"))
+    batch_seeds: str = arg("auto", "auto (on with CUDA) | on | off: with --seeds, every seed's update as one batched "
+                                   "update (torch.func.vmap); off: one after another", ("auto", "on", "off"))
     tf32: bool = arg(False, "CUDA: TF32 in float32 convolutions and matmuls (Ampere and newer: faster, ~3 fewer "
                             "significant digits); off: the reference arithmetic (DrQ-v2's curves ran on V100s, which "
                             "have none)")
@@ -77,6 +81,20 @@ class RunConfig:
     drop_inapplicable: bool = arg(False, "drop the flags given where they do nothing (their 'only for') with one "
                                          "line, instead of refusing them: sweep.py passes one set of flags to every "
                                          "method of a grid", saved=False)
+
+
+def parse_seeds(spec: str) -> list[int]:
+    """--seeds: '1-16' -> [1, ..., 16]; '1,3,5' and '1-4,9' too. A bad spec is a ConfigError."""
+    seeds = []
+    try:
+        for part in spec.split(","):
+            lo, _, hi = part.partition("-")
+            seeds += list(range(int(lo), int(hi or lo) + 1))
+    except ValueError:
+        raise ConfigError(f"--seeds takes seeds like 1-16 or 1,3,5, got '{spec}'") from None
+    if len(seeds) < 2 or len(set(seeds)) != len(seeds):
+        raise ConfigError(f"--seeds takes two or more different seeds, got '{spec}'")
+    return seeds
 
 
 class ConfigError(ValueError):
@@ -583,7 +601,7 @@ EVERYWHERE = frozenset((
     "update_every", "critic_tau", "feature_dim", "hidden_dim", "std_start", "std_end", "std_steps", "std_clip",
     "render_quality",
     # RunConfig: how the process runs, whatever the experiment
-    "device", "compile", "tf32", "replay_device", "prefetch", "threads", "run_root", "resume", "evaluate", "recipe",
+    "device", "compile", "cuda_graph", "batch_seeds", "tf32", "replay_device", "prefetch", "threads", "run_root", "resume", "evaluate", "recipe",
     "save_buffer", "save_video", "init_from", "log_every", "snapshot_minutes", "drop_inapplicable"))
 
 
@@ -941,7 +959,7 @@ def inherit_from_source(cfg, run: RunConfig, explicit: set, Config) -> set:
 
 
 RESUME_MAY_CHANGE = {"frames", "device", "threads", "save_buffer", "log_every", "resume", "snapshot_minutes",
-                     "save_video", "compile", "replay_device", "tf32", "prefetch"}
+                     "save_video", "compile", "cuda_graph", "batch_seeds", "replay_device", "tf32", "prefetch"}
 # --evaluate scores the run as it is: only how many episodes, whether to film, and where to compute.
 EVALUATE_MAY_SET = {"evaluate", "eval_episodes", "eval_episodes_per_task", "save_video", "device", "threads"}
 
@@ -1209,7 +1227,7 @@ def torch_setup(run: RunConfig):
     if run.replay_device not in ("auto", "cpu") and torch.device(run.replay_device) != device:
         raise ConfigError(f"--replay-device must be auto, cpu or the run's device ({device}), got '{run.replay_device}'")
     set_tf32(run.tf32)
-    if run.compile and device.type == "cpu" and not cxx_compiler():
+    if run.compile in ("on", True) and device.type == "cpu" and not cxx_compiler():
         raise ConfigError("--compile on the CPU needs a C++ compiler (inductor builds its kernels with one): no "
                           "g++, c++ or clang++ found; install one or leave --compile off")
     torch.set_num_threads(torch_threads(run))

@@ -18,12 +18,10 @@ import dataclasses
 import json
 import math
 import os
-import queue
 import random
 import shutil
 import socket
 import sys
-import threading
 import time
 from dataclasses import dataclass
 
@@ -76,118 +74,6 @@ class EnvConfig:
                               ("fixed", "random"))
 
 
-def load_mask_model(cfg):
-    """The learned mask source of --mask-source learned:PATH (None for sim); a missing or damaged
-    file, or one whose recorded held-out IoU is below segment.IOU_FLOOR, is a ConfigError, raised
-    before any run directory exists. One written below the floor with segment.py's --force is the
-    user's choice: a warning. The held-out IoU is printed (or that the file has none)."""
-    if cfg.mask_source == "sim":
-        return None
-    import segment  # the learned mask source (gymnasium, PIL): only when a run uses it
-    try:
-        model = segment.load_model(cfg.mask_source[len("learned:"):])
-    except segment.SegmentError as e:
-        raise cli.ConfigError(f"--mask-source: {e}") from None
-    verdict, message = segment.recorded_iou(model.meta)
-    if verdict == "refuse":
-        raise cli.ConfigError(f"--mask-source: {message}")
-    if verdict == "warn":
-        cli.warn(f"--mask-source: {message}")
-    else:
-        print(message)
-    message = other_robot_warning(cfg, model.meta)
-    if message:
-        cli.warn(message)
-    return model
-
-
-def other_robot_warning(cfg, meta: dict) -> str | None:
-    """A mask model knows the robot it was trained on: on another robot its masks are noise
-    (learned_mask_iou near 0). segment.py records the robot and env; models without the record
-    (older files, labels folders) are not checked."""
-    import envs
-    source = meta.get("source") if isinstance(meta.get("source"), dict) else {}
-    trained_env, robot = source.get("env"), meta.get("robot")
-    try:
-        robot = robot or (envs.robot_name(trained_env) if trained_env else None)
-        here = envs.robot_name(cfg.env)
-    except envs.EnvError:  # an unknown --env is reported, in one line, when its env is made
-        return None
-    if robot is None or robot == here:
-        return None
-    return (f"--mask-source: the mask model was trained on {trained_env or 'frames'} (robot: "
-            f"{robot}), but {cfg.env}'s robot is {here}: its masks will miss the robot (eval.csv "
-            "learned_mask_iou shows how far)")
-
-
-# the eval env's seed and its episodes' reset seeds are the run's seed + this: apart from training's
-EVAL_SEED = cli.EVAL_SEED
-
-
-def make_envs(cfg, uses_mask: bool, train=True):
-    """The train (None with train=False) and the eval env; sets cfg.action_repeat 0 to the suite's
-    default. `uses_mask`: the method trains on (or acts on) the robot mask. With a learned mask
-    source, obs["mask"] is the model's prediction on each frame (envs.make_env(mask_model=)): the
-    train env never renders the simulator's mask, the eval env renders it only for the
-    learned_mask_iou metric (info["true_mask"], which nothing stores or trains on). Both refuse
-    actions that are not finite numbers (FiniteActions)."""
-    import envs  # imported here so that `--help` and config errors need no MuJoCo
-    mask_model = load_mask_model(cfg)
-    train_env = make_run_env(cfg, "train", uses_mask and mask_model is None, mask_model) if train else None
-    eval_env = make_run_env(cfg, "eval", uses_mask and (mask_model is None or cfg.learned_mask_iou), mask_model)
-    cfg.action_repeat = cfg.action_repeat or envs.default_action_repeat(cfg.env)
-    if measures_learned_iou(cfg):
-        import segment
-        eval_env = segment.LearnedMaskIoU(eval_env)
-    return FiniteActions(train_env) if train else None, FiniteActions(eval_env)
-
-
-def measures_learned_iou(cfg) -> bool:
-    """Whether the eval env is a segment.LearnedMaskIoU (its pop() gives the learned masks' IoU)."""
-    return cfg.mask_source != "sim" and cfg.learned_mask_iou
-
-
-def make_run_env(cfg, split: str, render_mask: bool, mask_model=None, **overrides):
-    """The run's train or eval env, as its config describes it; `overrides` replace make_env
-    arguments (plot.py maps: clean masks)."""
-    import envs
-    kwargs = dict(frame_stack=cfg.frame_stack, action_repeat=cfg.action_repeat or None, mask_noise=cfg.mask_noise,
-                  mask_approx=cfg.mask_approx, backgrounds=cfg.backgrounds or None,
-                  difficulty=cfg.difficulty, render_quality=cfg.render_quality,
-                  mask_downsample=cfg.mask_downsample, camera_distraction=cfg.camera_distraction,
-                  color_distraction=cfg.color_distraction, render_mask=render_mask,
-                  kitchen_camera=cfg.kitchen_camera, mask_model=mask_model, pole_inertia=cfg.pole_inertia) | overrides
-    # Both envs draw Meta-World's 50 task variations from the run's seed (as the authors' MT1);
-    # the eval env's own seed only fixes its reset seeds, backgrounds and noise.
-    seed = cfg.seed + (EVAL_SEED if split == "eval" else 0)
-    try:
-        env = envs.make_env(cfg.env, seed=seed, split=split, variation_seed=cfg.seed, **kwargs)
-    except envs.EnvError as e:
-        raise cli.ConfigError(str(e))
-    if cfg.max_episode_steps:  # a time limit of the run's own is a truncation, like the suite's
-        from gymnasium.wrappers import TimeLimit
-        env = TimeLimit(env, cfg.max_episode_steps)
-    return env
-
-
-def episode_seed(seed, episode):
-    """Each episode's reset seed: backgrounds, task variation and noise are reproducible, and a
-    resumed run continues with the episodes an uninterrupted run would have had."""
-    return seed * 1_000_003 + episode
-
-
-def eval_tasks(env, cfg) -> list:
-    """The task of every evaluation episode: None (the env's own draw) --eval-episodes times, or for
-    a task set k episodes of each task, task after task (k = --eval-episodes-per-task, by default
-    ceil(--eval-episodes / tasks): at least --eval-episodes in all). The authors evaluate task sets
-    on 10 episodes of random tasks; per-task numbers need every task."""
-    tasks = getattr(env.unwrapped, "tasks", None)
-    if not tasks:
-        return [None] * cfg.eval_episodes
-    k = cfg.eval_episodes_per_task or math.ceil(cfg.eval_episodes / len(tasks))
-    return [task for task in tasks for _ in range(k)]
-
-
 # ================================================================================================
 # Evaluation: what the decoders make of the eval env's frames (metrics and videos)
 # ================================================================================================
@@ -205,18 +91,17 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 class EvalWatch:
-    """The eval env as sear.evaluate() sees it, plus a look at what the decoders make of it.
+    """What the decoders make of an evaluation's observations, seed by seed (train.evaluate shows it
+    every observation of its seed).
 
-    Every SCORE_EVERY-th observation the env returns (counting each reset and step of all evaluation
-    episodes) is encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its
-    newest frame is scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per
-    pixel, where the env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so
-    with
-    --mask-noise or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1]
-    image, after the [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a
-    video path the first episode is also written as an MP4, the panels side by side: camera | true
-    mask | predicted mask (the sigmoid, grey) | reconstruction, each only where the method has it. A
-    method without decoders and without a video has its observations passed through untouched."""
+    Every SCORE_EVERY-th observation (counting each reset and step of all evaluation episodes) is
+    encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its newest frame is
+    scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per pixel, where the
+    env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so with --mask-noise
+    or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1] image, after the
+    [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a video path the first
+    episode is also written as an MP4, the panels side by side: camera | true mask | predicted mask
+    (the sigmoid, grey) | reconstruction, each only where the method has it."""
 
     BATCH = 32
     # Encoding and decoding a frame again costs about half of a fast-render evaluation step on CPU
@@ -229,34 +114,22 @@ class EvalWatch:
     FPS = 20
     METRICS = ("mask_iou", "mask_bce", "recon_psnr")
 
-    def __init__(self, agent, env, video_path: str | None = None):
-        self.agent, self.env, self.video_path = agent, env, video_path
+    def __init__(self, agent, video_path: str | None = None):
+        self.agent, self.video_path = agent, video_path
         self.decodes = agent.aux.decodes if agent.aux is not None else ()
         # mask-free methods' envs skip the segmentation render
         self.true_mask = agent.method.uses_mask
         self.pending, self.values, self.episode, self.seen, self.video = [], {}, -1, 0, None
         self.label_strip = None  # the panels' names, drawn when the video starts
 
-    def __getattr__(self, name):  # everything else (spaces, close, ...) is the env's
-        return getattr(self.env, name)
-
-    def reset(self, **kwargs):
-        obs, info = self.env.reset(**kwargs)
-        self.episode += 1
-        self.see(obs)
-        return obs, info
-
-    def step(self, action):
-        obs, *rest = self.env.step(action)
-        self.see(obs)
-        return (obs, *rest)
-
-    def see(self, obs):
+    def see(self, obs, new_episode=False):
+        """An observation of the eval env (a stack: pixels and masks); new_episode at a reset."""
+        self.episode += new_episode
         filming = self.video_path is not None and self.episode == 0
         scoring = bool(self.decodes) and self.seen % self.SCORE_EVERY == 0
         self.seen += 1
-        if scoring or filming:  # the env's arrays are fresh at every step: kept, not copied
-            self.pending.append((filming, scoring, obs["pixels"], obs["mask"][-1]))
+        if scoring or filming:
+            self.pending.append((filming, scoring, obs["pixels"].copy(), obs["mask"][-1].copy()))
             if len(self.pending) == self.BATCH:
                 self.flush()
 
@@ -372,28 +245,29 @@ def load_agent(agent, state: dict, cfg, flag: str) -> None:
                               f"sear.py's (saved by an older version?): {first}") from None
 
 
-def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate) -> None:
-    """--evaluate RUN_DIR: `agent`, given the snapshot's weights, on the run's eval env for
-    --eval-episodes episodes by sear.evaluate, with the evaluations' own reset seeds (the run's
-    episode count gives eval.csv's row at the snapshot's frame again). Prints the mean return (and
-    success) with 95% CIs over the episodes, and the decoder metrics. Writes nothing into the run
-    but, with --save-video, a new videos/evaluate_<frame>[-k].mp4. Takes no lock: a running run can
-    be scored."""
+def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, envs, evaluate) -> None:
+    """--evaluate RUN_DIR: `agent`, given the snapshot's weights, on the run's eval env (`envs`, one
+    seed's runenvs.SeedEnvs) for --eval-episodes episodes by train.evaluate, with the evaluations' own
+    reset seeds (the run's episode count gives eval.csv's row at the snapshot's frame again). Prints
+    the mean return (and success) with 95% CIs over the episodes, and the decoder metrics. Writes
+    nothing into the run but, with --save-video, a new videos/evaluate_<frame>[-k].mp4. Takes no
+    lock: a running run can be scored."""
+    from harness import runenvs
     load_agent(agent, snapshot["agent"], cfg, "--evaluate")
     for message in cli.start_warnings(cfg, run, training=False):
         cli.warn(message)
     step = snapshot["counters"]["step"]
     frame = step * cfg.action_repeat
     video = claim_video(run.evaluate, frame) if run.save_video else None
-    n = len(eval_tasks(env, cfg))
+    n = len(runenvs.eval_tasks(envs.tasks, cfg))
     print(f"evaluating {run.evaluate} (snapshot at frame {frame}) on {cfg.env}: {n} "
           f"episode{'s' * (n != 1)}, device {agent.device}", flush=True)
-    watch = EvalWatch(agent, env, video)
+    watch = EvalWatch(agent, video)
     try:
-        episodes = evaluate(agent, watch, cfg, step)
+        episodes = evaluate([agent], envs, step, [watch])[0]
         scores = watch.finish()
-        if measures_learned_iou(cfg):
-            scores["learned_mask_iou"] = env.pop()
+        if runenvs.measures_learned_iou(cfg):
+            scores["learned_mask_iou"] = envs.call("eval", "pop")[0]
     except BaseException as e:
         if video:  # our own new file, unfinished: never leave half a video in the run
             with contextlib.suppress(OSError):
@@ -402,8 +276,6 @@ def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, env, evaluate
             cause, code = cli.stop_cause(e)
             raise cli.Interrupted(f"{cause} during the evaluation; nothing was written", code) from None
         raise
-    finally:
-        env.close()
     print("return " + mean_ci([e.ret for e in episodes]))
     successes = [float(e.success) for e in episodes if e.success is not None]
     if successes:
@@ -452,106 +324,6 @@ def rate_ci(values) -> str:
 # ================================================================================================
 # The replay buffer: where it lives, its sampler thread and its file
 # ================================================================================================
-# GPU memory left to the updates beside a replay there (SEAR at batch 256 and more)
-GPU_HEADROOM = 10 * 2**30
-
-
-def replay_device(run, device: torch.device, replay_bytes: int) -> torch.device:
-    """--replay-device: where the replay ring lives. auto: on the run's GPU when the whole ring fits
-    in its free memory with GPU_HEADROOM to spare (batches are then built there), else on the host
-    (one line says why, on a GPU); cpu, or the run's device, as given."""
-    if run.replay_device != "auto":
-        return torch.device(run.replay_device)
-    if device.type != "cuda":
-        return torch.device("cpu")
-    free, _ = torch.cuda.mem_get_info(device)
-    if replay_bytes + GPU_HEADROOM <= free:
-        return device
-    print(f"replay: {size(replay_bytes)} does not fit on {device} ({size(free)} free, "
-          f"{size(GPU_HEADROOM)} kept for the updates): on the host, each batch copied over "
-          "(--replay-device cpu says so quietly)")
-    return torch.device("cpu")
-
-
-def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device):
-    """The background sampler of --prefetch (on by default when a CUDA run keeps its replay on the
-    host), or None: the loop samples."""
-    if run.prefetch == "on" or (run.prefetch == "auto" and device.type == "cuda" and buffer.device.type == "cpu"):
-        # While the thread reads a batch, the loop writes up to 2 x update_every steps and a reset
-        # over the oldest slots of a full ring: episodes starting there are not drawn.
-        return Prefetcher(buffer, cfg.batch_size, rng, device, margin=cfg.frame_stack + 2 * cfg.update_every)
-    return None
-
-
-class Prefetcher:
-    """Replay sampling and the host->device copy of the next batch, in a background thread while the
-    current update runs (--prefetch; on by default with CUDA and a replay on the host, where the
-    update would otherwise wait for the host). Ahead of the loop: a batch is drawn two updates
-    before it is used (an episode that ends reaches the batches 2 x update_every steps later than
-    without it), and the sampling RNG runs ahead of the loop. On CUDA the copy goes from pinned
-    memory on its own stream."""
-
-    def __init__(self, buffer, batch_size: int, rng: np.random.Generator, device: torch.device, margin: int):
-        self.buffer, self.batch_size, self.rng, self.device, self.margin = buffer, batch_size, rng, device, margin
-        self.queue: queue.Queue = queue.Queue(maxsize=1)
-        self.stop = threading.Event()
-        self.thread = None
-        self.stream = torch.cuda.Stream(device) if device.type == "cuda" else None
-
-    def can_sample(self):
-        """What the loop asks before an update: an episode this thread can draw (the `margin` oldest
-        slots of the ring, which the loop may overwrite while this thread reads, left out)."""
-        return self.buffer.can_sample(self.margin)
-
-    def sample(self):
-        """buffer.sample() without the `margin` oldest slots; None while no episode can be drawn (in
-        a ring of about two episodes the loop may have overwritten the only one: the loop's next
-        can_sample() waits)."""
-        return self.buffer.sample(self.batch_size, self.rng, self.margin)
-
-    def _produce(self):
-        while not self.stop.is_set():
-            try:
-                batch = self.sample()
-                if batch is None:
-                    self.stop.wait(0.001)
-                    continue
-                event = None
-                if self.stream is not None:
-                    with torch.cuda.stream(self.stream):
-                        batch = type(batch)._make(x.pin_memory().to(self.device, non_blocking=True) for x in batch)
-                        event = torch.cuda.Event()
-                        event.record(self.stream)
-            except Exception as e:  # hand it to the learner, which raises it: never hang
-                self.queue.put((e, None))
-                return
-            self.queue.put((batch, event))  # waits until the learner has taken the previous batch
-
-    def next(self):
-        if self.thread is None:  # started at the first update, once the buffer can be sampled
-            self.thread = threading.Thread(target=self._produce, daemon=True)
-            self.thread.start()
-        batch, event = self.queue.get()
-        if isinstance(batch, Exception):
-            raise batch
-        # the update's stream waits for the copy, and owns the tensors after it
-        if event is not None:
-            current = torch.cuda.current_stream(self.device)
-            event.wait(current)
-            for x in batch:
-                x.record_stream(current)
-        return batch
-
-    def close(self):
-        self.stop.set()
-        while self.thread is not None and self.thread.is_alive():
-            try:  # unblock a producer waiting on a full queue
-                self.queue.get_nowait()
-            except queue.Empty:
-                pass
-            self.thread.join(timeout=0.05)
-
-
 def save_buffer(buffer, path):
     """buffer.npz: the filled slots of the ring in physical order, and `t` (the episode index follows
     from the `first` flags)."""
@@ -741,11 +513,21 @@ def snapshot_bytes(agent) -> int:
     """The size of snapshot.pt at its largest, from the agent's tensors: every network's state and,
     for each parameter an optimiser trains, Adam's two moments (there from the first update on). RNG
     states, counters and config add kilobytes."""
-    networks = sum(t.numel() * t.element_size() for part in agent.state_dict().values() if part
-                   for t in part.values() if torch.is_tensor(t))
+    networks = sum(t.numel() * t.element_size() for part in agent.state_dict().values()
+                   if isinstance(part, dict) for t in part.values() if torch.is_tensor(t))
     moments = sum(2 * p.numel() * p.element_size() for opt in vars(agent).values()
                   if isinstance(opt, torch.optim.Optimizer) for group in opt.param_groups for p in group["params"])
     return networks + moments
+
+
+def compact(state):
+    """A state dict whose tensors own their memory: a view of a larger tensor (a seed's part of a
+    batched group's weights, harness/speed.py) is copied, so a snapshot holds this agent alone."""
+    if isinstance(state, dict):
+        return {k: compact(v) for k, v in state.items()}
+    if torch.is_tensor(state) and state.untyped_storage().nbytes() > state.nbytes:
+        return state.clone()
+    return state
 
 
 def save_snapshot(run_dir, payload):
@@ -1017,26 +799,6 @@ class Health:
                 f"{median:.3g}, more than {self.DIVERGE_FACTOR:g} x the largest return any policy "
                 f"can have here ({self.reward_scale:.3g} per step / (1 - {self.discount:g}) = "
                 f"{self.q_bound():.3g}); the run will not learn (too high a --lr?): docs/health.md")
-
-
-class FiniteActions:
-    """The last guard before the simulator: an action that is not a finite number (an actor whose
-    parameters diverged) stops the run (cli.NonFinite) instead of reaching MuJoCo, where it would
-    end in a PhysicsError traceback. A check of a few floats per step. The outermost wrapper of a
-    run's envs (everything else is the env's), so it needs no gymnasium at import."""
-
-    def __init__(self, env):
-        self.env = env
-
-    def __getattr__(self, name):
-        return getattr(self.env, name)
-
-    def step(self, action):
-        finite = np.isfinite(action)
-        if not finite.all():
-            raise cli.NonFinite(f"{int((~finite).sum())} of the {finite.size} entries of the "
-                                f"actor's action are not finite")
-        return self.env.step(action)
 
 
 @dataclass
@@ -1352,6 +1114,10 @@ class RunDir:
         self.counters = None  # the loop's, from start()
         self.agent = self.buffer = self.sample_rng = None  # what a snapshot saves, from start()
         self.watch = None  # the evaluation under way (start_eval)
+        self.low_iou = None  # the learned masks' IoU over evaluations (segment.IoUWatch), if measured
+        if cfg.mask_source != "sim" and cfg.learned_mask_iou:
+            import segment
+            self.low_iou = segment.IoUWatch()
         self.cut = ""  # what a SIGTERM cut short: said when the run stops
         self.pending = []  # the updates' metrics not read from the device yet
         self.metrics = {}  # the updates' metrics of the episode under way, read
@@ -1409,6 +1175,10 @@ class RunDir:
         state = self.resumed
         load_agent(self.agent, state["agent"], self.cfg, "--resume")
         set_rng_state(state["rng"])
+        if "rng" not in state["agent"]:  # before the agent had its own generator: torch's stream was it
+            old = state["rng"]["torch"] if self.agent.device.type == "cpu" else \
+                state["rng"]["cuda"][self.agent.device.index or 0]
+            self.agent.rng.set_state(old)
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]
         # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the
@@ -1445,7 +1215,7 @@ class RunDir:
         if self.non_finite_networks():
             raise cli.NonFinite("the snapshot due now was not written")
         counters = {**dataclasses.asdict(self.counters), "wall_time": time.time() - self.start_time}
-        payload = {"config": cli.config_dict(self.cfg, self.run), "agent": self.agent.state_dict(),
+        payload = {"config": cli.config_dict(self.cfg, self.run), "agent": compact(self.agent.state_dict()),
                    "rng": rng_state(), "sample_rng": self.sample_rng.bit_generator.state,
                    "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters,
                    "progress": self.console.progress.state()}  # the ETA of the next start
@@ -1617,22 +1387,25 @@ class RunDir:
             return ""
         return "the policy copied by --init-from" if self.run.init_from else "the untrained policy"
 
-    def start_eval(self, eval_env) -> EvalWatch:
-        """The eval env for train.evaluate(), watched: the decoders' metrics, and the first episode
-        filmed with --save-video. Off the training-speed clock until end_eval()."""
-        self.console.start_eval(self.frame, len(eval_tasks(eval_env, self.cfg)), self.untrained())
+    def start_eval(self, tasks) -> EvalWatch:
+        """An evaluation starts (of the eval env's `tasks`, None for one task): what watches its
+        observations (the decoders' metrics, the first episode filmed with --save-video). Off the
+        training-speed clock until end_eval()."""
+        from harness import runenvs
+        self.console.start_eval(self.frame, len(runenvs.eval_tasks(tasks, self.cfg)), self.untrained())
         video = (os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video
                  else None)
-        self.watch = EvalWatch(self.agent, eval_env, video)
+        self.watch = EvalWatch(self.agent, video)
         return self.watch
 
     def show_eval(self, episode, t):
         """The progress line during an evaluation (train.evaluate's on_step)."""
         self.console.show_eval(self.frame, episode, t, self.untrained(), self.next_eval())
 
-    def end_eval(self, episodes) -> bool:
+    def end_eval(self, episodes, learned_iou=None) -> bool:
         """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True); none
-        for an evaluation that a SIGTERM cut short (False): the resumed run evaluates again."""
+        for an evaluation that a SIGTERM cut short (False): the resumed run evaluates again.
+        learned_iou: the learned masks' IoU over its frames (--mask-source learned:)."""
         c, frame, watch = self.counters, self.frame, self.watch
         scores = watch.finish()
         self.watch = None
@@ -1644,9 +1417,9 @@ class RunDir:
         row = {"frame": frame, "step": c.step, "episode": c.episode,
                "return": float(np.mean([e.ret for e in episodes])),
                "wall_time": round(time.time() - self.start_time, 2), **eval_columns(episodes), **scores}
-        if measures_learned_iou(self.cfg):  # the mask model's IoU on these episodes' frames
-            row["learned_mask_iou"] = scores["learned_mask_iou"] = watch.env.pop()
-            if warning := watch.env.low_iou.see(row["learned_mask_iou"], frame):
+        if learned_iou is not None:  # the mask model's IoU on these episodes' frames
+            row["learned_mask_iou"] = scores["learned_mask_iou"] = learned_iou
+            if warning := self.low_iou.see(learned_iou, frame):
                 cli.warn(warning)
         scalars = {"eval/return": row["return"], **{f"eval/{name}": v for name, v in scores.items()}}
         self.files.write_row(self.files.eval_log, row, scalars, frame)

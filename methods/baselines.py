@@ -1,6 +1,6 @@
 """The paper's baselines (and DEAR, beyond it) on sear.py's seam: each is an auxiliary loss (an
-`AuxLoss` subclass) or an input change, and one row of sear.METHODS, which this module fills in on
-import (train.py imports it). docs/baselines.md says where each follows its source.
+`AuxLoss` subclass) or an input change, and one row of this module's METHODS, which train.py puts
+beside sear.METHODS. docs/baselines.md says where each follows its source.
 
     ae            DrQ-AE: one decoder on the whole latent (the authors' drqv2AE.py)
     mae           DrQ-MAE: reconstruct hidden patches (He et al. 2022)
@@ -87,12 +87,12 @@ class AEAux(ReconstructionAux):
         return loss, {"recon_loss": recon_loss.detach()}
 
 
-def patch_mask(n, size, patch, ratio, device):
+def patch_mask(n, size, patch, ratio, device, generator=None):
     """MAE's masking: per sample, hide round(ratio * patches) of the (size/patch)^2 patches, chosen
-    uniformly. Returns a (n, 1, size, size) float map, 1 where hidden."""
+    uniformly (with `generator`: the agent's). Returns a (n, 1, size, size) float map, 1 where hidden."""
     side = size // patch
     num, hide = side * side, int(round(ratio * side * side))
-    order = torch.rand(n, num, device=device).argsort(dim=1)
+    order = torch.rand(n, num, device=device, generator=generator).argsort(dim=1)
     hidden = torch.zeros(n, num, device=device)
     hidden.scatter_(1, order[:, :hide], 1.0)
     hidden = hidden.view(n, 1, side, side)
@@ -108,8 +108,8 @@ class MAEAux(ReconstructionAux):
         self.c1, self.ratio, self.patch = cfg.recon_coef, cfg.mae_ratio, cfg.mae_patch
         self.recon_decoder = Decoder(encoder.repr_dim, 3 * cfg.frame_stack)
 
-    def forward(self, latent, obs_aug, mask_aug, encoder, **extra):
-        hidden = patch_mask(obs_aug.shape[0], obs_aug.shape[-1], self.patch, self.ratio, obs_aug.device)
+    def forward(self, latent, obs_aug, mask_aug, encoder, rng=None, **extra):
+        hidden = patch_mask(obs_aug.shape[0], obs_aug.shape[-1], self.patch, self.ratio, obs_aug.device, rng)
         masked = obs_aug * (1 - hidden) + 127.5 * hidden  # 127.5 -> 0 after normalisation
         pred = self.recon_decoder(encoder(masked))
         recon_loss = reconstruction_loss(pred, obs_aug, weight=hidden)
@@ -128,18 +128,24 @@ class CURLAux(AuxLoss):
         query = nn.Sequential(encoder, *critic.trunk[:2])  # curl_sac.py's encoder output: the critic's feature
         self.query, self.key = (query,), copy.deepcopy(query).requires_grad_(False)  # a tuple: the agent's own
         self.W = nn.Parameter(torch.rand(cfg.feature_dim, cfg.feature_dim).to(device))
-        self.opt = sear.Adam([{"params": query.parameters(), "lr": 2 * lr}, {"params": [self.W]}], lr=lr)
+        self.opt = torch.optim.Adam([{"params": query.parameters(), "lr": 2 * lr}, {"params": [self.W]}],
+                                    lr=lr, fused=True)
 
-    def after_update(self, obs):  # curl_sac.py: the key's EMA every 2nd update, then update_cpc (anchor, positive)
-        with torch.no_grad():  # key += w (query - key), w = tau on even updates, 0 (the key unchanged) on odd ones
-            key = list(self.key.parameters())
-            step = torch._foreach_sub(list(self.query[0].parameters()), key)
-            torch._foreach_mul_(step, self.tau * (self.updates % 2 == 0))  # a tensor factor: no host read
-            torch._foreach_add_(key, step)
+    def after_update(self, obs, rng):  # curl_sac.py: the key's EMA every 2nd update, then update_cpc
+        with torch.no_grad():
+            # key += w (query - key), w = tau on even updates, 0 (the key unchanged) on odd ones: a
+            # tensor weight, no host read
+            weight = self.tau * (self.updates % 2 == 0).float()
+            for k, q in zip(self.key.parameters(), self.query[0].parameters()):
+                k.lerp_(q, weight)
             self.updates += 1
-        logits = self.query[0](random_shift(obs)) @ (self.W @ self.key(random_shift(obs)).T)
+        shifts = [torch.randint(0, 2 * sear.PAD + 1, (len(obs), 1, 1, 2), device=obs.device, dtype=obs.dtype,
+                                generator=rng) for _ in range(2)]  # the anchor's, then the positive's
+        logits = self.query[0](random_shift(obs, shifts[0])) @ (self.W @ self.key(random_shift(obs, shifts[1])).T)
         loss = F.cross_entropy(logits - logits.max(1, keepdim=True).values, torch.arange(len(obs), device=obs.device))
-        self.opt.step(torch.autograd.grad(loss, self.opt.params))
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward(inputs=[p for group in self.opt.param_groups for p in group["params"]])
+        self.opt.step()
         return {"curl_loss": loss.detach()}
 
     def get_extra_state(self):  # for an exact resume: the EMA's phase and CURL's own Adam
@@ -150,11 +156,12 @@ class CURLAux(AuxLoss):
         self.opt.load_state_dict(state[1])
 
 
-sear.METHODS.update({
+# The baselines' rows of the methods table (train.py puts them beside sear.METHODS).
+METHODS = {
     "ae": Method("DrQ-AE: one decoder on the whole latent", aux=AEAux),
     "mae": Method("DrQ-MAE: reconstruct hidden patches", aux=MAEAux),
     "curl": Method("CURL: contrastive, momentum key", aux=CURLAux),
     "rgbm": Method("DrQ-RGBM: mask appended to the input", encoder="drq", mask_input=True, uses_mask=True),
     "sear-nosplit": Method("SEAR without latent split", aux=SearNoSplitAux, uses_mask=True),
     "dear": Method("DEAR: mask half + cosine term, no reconstruction", aux=DEARAux, uses_mask=True),
-})
+}

@@ -87,7 +87,7 @@ def shrink_and_perturb(net: nn.Module, factor: float, init) -> None:
     """DrM's perturb (utils.perturb): every Linear layer's weight and bias become factor x themselves
     + (1 - factor) x a fresh initialisation; other layers (convolutions, LayerNorm) keep theirs. The
     fresh weights come from a re-initialised copy of the whole network, as DrM draws them, so the same
-    torch RNG state gives the same noise (convolutions' draws included, though unused)."""
+    RNG state gives the same noise (convolutions' draws included, though unused)."""
     fresh = copy.deepcopy(net).to(memory_format=torch.contiguous_format)  # orthogonal_ needs a 2-D view
     fresh.apply(init)
     with torch.no_grad():
@@ -104,20 +104,28 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
     return (weight * diff ** 2).mean()
 
 
+def forget(opt: torch.optim.Adam, params) -> None:
+    """Adam's moments and step counts of `params` back to their start (zeroed in place: a fresh
+    optimiser's first step, at the same addresses)."""
+    for p in params:
+        for t in opt.state[p].values():
+            t.zero_()
+
+
 class DrMAgent(sear.Agent):
     """sear.Agent with DrM: the value network V and its optimiser, the actor's latest dormant ratio and
     the step at which the actor first woke up (float64 0-d tensors on the device: the update reads and
     writes them without a host sync; NaN: not yet awake)."""
 
-    def __init__(self, cfg, action_dim: int, device: torch.device):
-        super().__init__(cfg, action_dim, device)
+    def __init__(self, cfg, action_dim: int, device: torch.device, method=None):
+        super().__init__(cfg, action_dim, device, method)
         # V's initial weights come from a fork of the torch RNG: the run's own stream is left as the
         # same seed without --drm has it (same initial networks, same first actions).
         with torch.random.fork_rng(devices=[]):
             self.value = nn.Sequential(sear.trunk(self.encoder.repr_dim, cfg.feature_dim),
                                        sear.mlp(cfg.feature_dim, cfg.hidden_dim, 1)).apply(sear.weight_init)
         self.value.to(device)
-        self.value_opt = sear.Adam(self.value.parameters(), lr=cfg.lr)
+        self.value_opt = torch.optim.Adam(self.value.parameters(), lr=cfg.lr, fused=True)
         # The actor's dormant ratio and the step it woke up at (NaN: not yet), updated in place by the
         # update (a compiled one reads and writes them at fixed addresses). DrM's start: std ~1, lambda ~0.
         self.state = torch.tensor([1.0, math.nan], dtype=torch.float64, device=device)
@@ -150,12 +158,12 @@ class DrMAgent(sear.Agent):
         cfg = self.cfg
         return cfg.drm_lambda / (1 + torch.exp(cfg.drm_lambda_temp * (self.ratio - cfg.drm_target_ratio)))
 
-    def joint_loss(self, latent, obs_aug, mask_aug, batch, step):
+    def joint_loss(self, latent, obs_aug, mask_aug, batch, step, noise):
         """Before the critic's loss (DrM's update_predictor comes before its update_critic), on the
         batch's detached latent: the actor's dormant ratio, which sets this update's std and lambda,
         and V's step; then Eq. 6."""
         metrics = self.observe(latent.detach(), batch.action, step)
-        loss, terms = super().joint_loss(latent, obs_aug, mask_aug, batch, step)
+        loss, terms = super().joint_loss(latent, obs_aug, mask_aug, batch, step, noise)
         return loss, {**terms, **metrics}
 
     def observe(self, latent: torch.Tensor, action: torch.Tensor, step) -> dict:
@@ -170,14 +178,16 @@ class DrMAgent(sear.Agent):
         with torch.no_grad():
             q = torch.min(*self.critic(latent, action))
         value_loss = expectile_loss(self.value(latent) - q, cfg.drm_expectile)
-        self.value_opt.step(torch.autograd.grad(value_loss, self.value_opt.params))
+        self.value_opt.zero_grad(set_to_none=True)
+        value_loss.backward()
+        self.value_opt.step()
         return {"dormant_ratio": self.ratio.clone(), "drm_lambda": self.lam,
                 "value_loss": value_loss.detach()}
 
-    def next_value(self, next_latent, std):
+    def next_value(self, next_latent, std, noise):
         """The critic's bootstrap value: lambda x V(s') + (1 - lambda) x min(Q1', Q2')."""
         lam = self.lam
-        return lam * self.value(next_latent) + (1 - lam) * super().next_value(next_latent, std)
+        return lam * self.value(next_latent) + (1 - lam) * super().next_value(next_latent, std, noise)
 
     def perturb_factor(self) -> torch.Tensor:
         """How much of each Linear layer a perturbation keeps: clip(1 - rate x ratio, min, max)."""
@@ -187,16 +197,17 @@ class DrMAgent(sear.Agent):
     def perturb_if_due(self, step: int) -> torch.Tensor | None:
         """At the start of an update whose step is a multiple of --drm-perturb-every: shrink-and-perturb
         actor, critic, target critic, encoder and V by perturb_factor() (in DrM's order: the noise is drawn
-        from the torch RNG in that order), and forget those parameters' Adam moments. An auxiliary loss's
-        decoders are not DrM's: they keep their weights and their moments. Returns the factor, if it did."""
+        from the agent's generator in that order), and forget those parameters' Adam moments. An auxiliary
+        loss's decoders are not DrM's: they keep their weights and their moments. Returns the factor, if it
+        did."""
         if step % self.cfg.drm_perturb_every:
             return None
         factor = self.perturb_factor()
         for net in (self.actor, self.critic, self.critic_target, self.encoder, self.value):
-            shrink_and_perturb(net, factor, sear.weight_init)
+            shrink_and_perturb(net, factor, lambda m: sear.weight_init(m, self.rng))
         for opt, nets in ((self.model_opt, (self.encoder, self.critic)), (self.actor_opt, (self.actor,)),
                           (self.value_opt, (self.value,))):
-            opt.reset([p for net in nets for p in net.parameters()])
+            forget(opt, [p for net in nets for p in net.parameters()])
         return factor
 
     def update(self, batch, step):

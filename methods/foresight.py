@@ -7,15 +7,15 @@ scene part (the rest of the latent). Only what the actions move is predictable f
 part learns the agent. docs/foresight.md says where each piece follows the released code
 (github.com/ego-foresight/efrl at 7c316bf: agents/drqv2ef.py, cfgs/agent/drqv2ef.yaml).
 
-The pieces, on the seam:
+The pieces, each a subclass of sear.py's:
   * ForesightAux: the MLP, the decoder and the loss, an AuxLoss: its term joins Eq. 6's joint step, so the
     critic and EF train the encoder together, as the release's one backward does;
-  * its replay (WindowReplay, --ef-horizon) samples Window batches: each start's next actions and the frame
-    `ahead` steps after it, `ahead` drawn once per batch in 1..horizon from the run's sample RNG; sear.Agent
-    shifts that frame with its context (one shift per sample, as the release's repeat_last);
-  * its `act` babbles: for the first --ef-babbling-steps agent steps of training, uniform actions in +-4 clipped
-    to +-1.
-Nothing else of the agent changes, so `--method ef --drm` is EF on DrM's agent (drm.DrMAgent) as it is.
+  * WindowReplay (--ef-horizon), a sear.ReplayBuffer, samples Window batches: each start's next actions and the
+    frame `ahead` steps after it, `ahead` drawn once per batch in 1..horizon from the run's sample RNG;
+  * ForesightAgent, a sear.Agent, shifts that frame with its context (one shift per sample, as the release's
+    repeat_last) and babbles: for the first --ef-babbling-steps agent steps of training, uniform actions in
+    +-4 clipped to +-1.
+`--method ef --drm` is EF on DrM's agent: train.make_agent puts drm.DrMAgent before ForesightAgent.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ import torch
 import torch.nn as nn
 
 import sear
-from sear import AuxLoss, Method, arg, summed_mse
+from sear import AuxLoss, Method, arg, random_shift, summed_mse
 
 
 class Window(NamedTuple):
@@ -131,7 +131,6 @@ class ForesightAux(AuxLoss):
     def __init__(self, cfg, encoder: nn.Module, critic: nn.Module):
         super().__init__()
         self.agent_dim, self.coef, self.window = cfg.ef_agent_dim, cfg.ef_coef, cfg.ef_horizon
-        self.babbling_steps = cfg.ef_babbling_steps
         if not 0 < self.agent_dim < encoder.repr_dim or self.window < 1:
             raise ValueError(f"--method ef needs 0 < --ef-agent-dim < --latent-dim ({self.agent_dim}, "
                              f"{encoder.repr_dim}) and --ef-horizon >= 1 ({self.window})")
@@ -152,15 +151,28 @@ class ForesightAux(AuxLoss):
         ef_loss = summed_mse(frame.float().clamp(0.0, 1.0), target / 255.0)
         return self.coef * ef_loss, {"ef_loss": ef_loss.detach(), "ef_ahead": ahead.float().mean()}
 
-    def replay(self, *args, **kwargs) -> WindowReplay:
-        """The run's replay: its batches are Windows of --ef-horizon steps."""
-        return WindowReplay(*args, window=self.window, **kwargs)
+class ForesightAgent(sear.Agent):
+    """sear.Agent for EF: its batches' frame ahead is shifted with the context, and it babbles."""
 
-    def act(self, action, step):
+    def act(self, obs, mask, step: int, eval_mode: bool):
         """Motor babbling: while training and step < --ef-babbling-steps (agent steps), every action entry is
         uniform in +-4 clipped to +-1 (3/8 at each bound, uniform in between with probability 1/4)."""
-        return action.uniform_(-BABBLE, BABBLE).clamp_(-1.0, 1.0) if step < self.babbling_steps else action
+        action = super().act(obs, mask, step, eval_mode)
+        if eval_mode or step >= self.cfg.ef_babbling_steps:
+            return action
+        return action.uniform_(-BABBLE, BABBLE, generator=self.rng).clamp_(-1.0, 1.0)
+
+    def critic_objective(self, batch, step, noise):
+        """The frame ahead shifted as its context (the same shift per sample), then sear.Agent's."""
+        if isinstance(batch, Window):
+            batch = batch._replace(frame_ahead=random_shift(batch.frame_ahead, noise.shift))
+        return super().critic_objective(batch, step, noise)
 
 
-sear.METHODS["ef"] = Method("Ego-Foresight: the latent's agent part rolled forward by the actions, "
-                            "a future frame decoded", aux=ForesightAux)
+def make_replay(cfg, *args, **kwargs) -> WindowReplay:
+    """EF's replay: its batches are Windows of --ef-horizon steps."""
+    return WindowReplay(*args, window=cfg.ef_horizon, **kwargs)
+
+
+METHODS = {"ef": Method("Ego-Foresight: the latent's agent part rolled forward by the actions, "
+                        "a future frame decoded", aux=ForesightAux)}

@@ -450,7 +450,7 @@ def test_runs_started_in_the_same_second_get_their_own_run_dirs(tmp_path, monkey
     """Two seeds-alike runs launched together: the second must not crash on the first's directory,
     even when the other process creates it between a check and the mkdir (the race is simulated)."""
     sys.path.insert(0, str(ROOT))
-    from harness import experiment
+    from harness import experiment, runenvs
     monkeypatch.setattr(experiment.time, "strftime", lambda fmt: "20261123-000000")
     first = experiment.new_run_dir(str(tmp_path), "walker-stand__sear__1")
     monkeypatch.setattr(experiment.os.path, "exists", lambda p: False)  # the other process wins the race
@@ -508,8 +508,8 @@ def test_every_seed_a_user_can_type_is_one_line_or_works(tmp_path, capsys, monke
     """numpy's legacy seeds (np.random.seed, dm_control's and Meta-World's RandomState) are below 2^32 and the
     eval env's seed is --seed + 100000: outside [0, 2^32 - 1 - 100000] a seed is one line, inside it trains."""
     from harness import cli
-    from harness import experiment
-    assert cli.MAX_SEED + experiment.EVAL_SEED == 2**32 - 1
+    from harness import experiment, runenvs
+    assert cli.MAX_SEED + runenvs.EVAL_SEED == 2**32 - 1
     for seed in ("-1", "4294967296", str(cli.MAX_SEED + 1), "1" + "0" * 30):
         code, err = main_in_process(["--seed", seed], capsys, tmp_path, monkeypatch)
         assert code == 2 and err == f"sear.py: error: --seed must be in [0, {cli.MAX_SEED}] (numpy seeds below 2^32, " \
@@ -571,7 +571,7 @@ def test_make_env_defaults_are_the_runs():
     import inspect
 
     import envs
-    from harness import experiment
+    from harness import experiment, runenvs
     params = inspect.signature(envs.make_env).parameters
     run = experiment.EnvConfig()
     shared = [name for name in params if hasattr(run, name) and name != "backgrounds"]  # None there, '' here

@@ -33,7 +33,7 @@ def snapshot(run_dir):
 
 # ----------------------------------------------------------------------------------- the ETA
 def test_the_eta_counts_only_the_updates_and_evaluations_it_has_timed(capsys):
-    from harness import experiment
+    from harness import experiment, runenvs
     now, frame = [0.0], [0]
     p = experiment.Progress(total=100_000, every=0, eval_every=10_000, clock=lambda: now[0])
 
@@ -95,7 +95,7 @@ def test_a_collapsed_actor_is_warned_of_once_and_the_recorded_healthy_runs_are_n
     mean action at the bound, spread below 4e-9) is warned of; our DrQ seed 2 at 8k-16k frames (97-99%
     saturated but spread 0.15-0.25; it recovered), seed 3 solving the task bang-bang (22-44% / 0.83-0.89)
     and SEAR's early phase (one action in every state, none at the bound; it recovered) are not."""
-    from harness import experiment
+    from harness import experiment, runenvs
     window = experiment.Health.COLLAPSE_WINDOW
     health = experiment.Health(discount=0.99)
     fired = [health.check({"actor_saturated": 1.0, "action_spread": 3e-9, "q": 20.0}) for _ in range(window + 50)]
@@ -109,7 +109,7 @@ def test_a_collapsed_actor_is_warned_of_once_and_the_recorded_healthy_runs_are_n
 
 
 def test_a_diverging_critic_is_warned_of_against_the_largest_return_any_policy_can_have():
-    from harness import experiment
+    from harness import experiment, runenvs
     window = experiment.Health.DIVERGE_WINDOW
     health = experiment.Health(discount=0.99)
     health.see_rewards(np.array([0.0, 2.0, 1.5]))  # cartpole at action repeat 2: at most 2 per agent step
@@ -128,7 +128,7 @@ def test_a_diverging_critic_is_warned_of_against_the_largest_return_any_policy_c
 def test_a_value_that_is_not_finite_raises_and_a_non_finite_action_never_reaches_the_env():
     import gymnasium as gym
     from harness import cli
-    from harness import experiment
+    from harness import experiment, runenvs
     health = experiment.Health(discount=0.99)
     health.check({"critic_loss": 1.0, "q": 1.0})
     with pytest.raises(cli.NonFinite, match=r"^critic_loss is inf at update 2 of this process$"):
@@ -143,7 +143,7 @@ def test_a_value_that_is_not_finite_raises_and_a_non_finite_action_never_reaches
             self.steps += 1
             return np.zeros(1), 0.0, False, False, {}
 
-    env = experiment.FiniteActions(Env())
+    env = runenvs.FiniteActions(Env())
     env.step(np.zeros(3, np.float32))
     with pytest.raises(cli.NonFinite, match=r"^2 of the 3 entries of the actor's action are not finite$"):
         env.step(np.array([np.nan, 0.5, np.inf], np.float32))

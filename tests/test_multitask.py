@@ -18,7 +18,7 @@ from scipy import ndimage
 
 from harness import cli
 import envs
-from harness import experiment
+from harness import experiment, runenvs
 import sear
 import train
 from tests.test_envs import raw_robot, rand_vecs, is_one_of
@@ -154,12 +154,12 @@ def test_multitask_defaults_apply_to_task_sets_unless_given():
 
 def test_evaluation_runs_every_task():
     cfg = train.Config(eval_episodes=10)
-    three = types.SimpleNamespace(unwrapped=types.SimpleNamespace(tasks=("a", "b", "c")))
-    assert experiment.eval_tasks(three, cfg) == ["a"] * 4 + ["b"] * 4 + ["c"] * 4   # ceil(10 / 3)
+    three = ("a", "b", "c")
+    assert runenvs.eval_tasks(three, cfg) == ["a"] * 4 + ["b"] * 4 + ["c"] * 4   # ceil(10 / 3)
     cfg.eval_episodes_per_task = 2
-    assert experiment.eval_tasks(three, cfg) == ["a", "a", "b", "b", "c", "c"]
-    one = types.SimpleNamespace(unwrapped=types.SimpleNamespace())
-    assert experiment.eval_tasks(one, cfg) == [None] * 10
+    assert runenvs.eval_tasks(three, cfg) == ["a", "a", "b", "b", "c", "c"]
+    one = None
+    assert runenvs.eval_tasks(one, cfg) == [None] * 10
     episodes = [train.Episode(1.0, False, "a"), train.Episode(3.0, True, "a")]
     assert experiment.eval_columns(episodes) == {"success": 0.5, "return/a": 2.0, "success/a": 0.5}
 

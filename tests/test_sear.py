@@ -581,7 +581,7 @@ def test_prefetcher_delivers_the_batches_direct_sampling_would(device):
                     {"pixels": rng.integers(0, 256, (9, 84, 84), dtype=np.uint8),
                      "mask": rng.integers(0, 2, (3, 84, 84), dtype=np.uint8)})
     direct = [buf.sample(8, r) for r in [np.random.default_rng(5)] for _ in range(3)]
-    pre = experiment.Prefetcher(buf, 8, np.random.default_rng(5), device, margin=4)
+    pre = speed.Prefetcher(buf, 8, np.random.default_rng(5), device, margin=4)
     fetched = [pre.next() for _ in range(3)]
     pre.close()
     assert not pre.thread.is_alive()
@@ -597,7 +597,7 @@ def test_prefetcher_keeps_clear_of_the_oldest_slots_of_a_full_ring():
     buf = sear.ReplayBuffer(30, (3, 84, 84), 2, frame_stack=3, nstep=3, discount=0.99)
     fill(buf, [([0.5] * 9, False)] * 8)  # 80 slots into 30: episodes at 0, 10, ..., 70 (running)
     direct = buf.sample(256, np.random.default_rng(0)).obs[:, -3, 0, 0].numpy().astype(int)  # 50 and 60 are whole
-    pre = experiment.Prefetcher(buf, 64, np.random.default_rng(0), torch.device("cpu"), margin=7)
+    pre = speed.Prefetcher(buf, 64, np.random.default_rng(0), torch.device("cpu"), margin=7)
     fetched = [pre.next() for _ in range(5)]
     pre.close()
     start_times = np.concatenate([b.obs[:, -3, 0, 0].numpy() for b in fetched]).astype(int)  # newest frame: start
@@ -615,7 +615,7 @@ def test_prefetcher_waits_while_the_margin_leaves_no_episode_and_the_loop_waits_
     for time in range(31, 40):
         if time == 34:  # the oldest slot holds time 15: episode 20 is whole, but starts in the margin
             assert buf.can_sample()
-            pre = experiment.Prefetcher(buf, 8, np.random.default_rng(0), torch.device("cpu"), margin=7)
+            pre = speed.Prefetcher(buf, 8, np.random.default_rng(0), torch.device("cpu"), margin=7)
             assert pre.sample() is None and not pre.can_sample()  # 20 < 15 + 7
         buf.add(np.zeros(2, np.float32), 0.5, False, make_obs(time, 3))
     buf.add_first(make_obs(40, 4))  # episode 30-39 ends: 30 >= 41 - 19 + 7

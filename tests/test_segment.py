@@ -271,17 +271,17 @@ def model_with(path, **meta):
     ({"labels": 3}, "mask model: held-out IoU not recorded"),   # an older file, or no held-out pairs
     ({"iou": {"train": 0.2, "held-out": float("nan")}}, "mask model: held-out IoU not recorded")])
 def test_sear_prints_the_models_recorded_held_out_iou(tmp_path, capsys, meta, said):
-    from harness import experiment
+    from harness import experiment, runenvs
     cfg = train.Config(env="walker-walk", mask_source=f"learned:{model_with(tmp_path / 'm.pt', **meta)}")
-    assert experiment.load_mask_model(cfg) is not None
+    assert runenvs.load_mask_model(cfg) is not None
     out = capsys.readouterr()
     assert out.out.startswith(said) and out.out.count("\n") == 1 and out.err == "", out
 
 
 def test_sear_warns_on_a_model_forced_below_the_floor(tmp_path, capsys):
-    from harness import experiment
+    from harness import experiment, runenvs
     path = model_with(tmp_path / "m.pt", iou={"train": 0.01, "held-out": 0.0}, iou_floor=0.5, forced_below_floor=True)
-    assert experiment.load_mask_model(train.Config(env="walker-walk", mask_source=f"learned:{path}")) is not None
+    assert runenvs.load_mask_model(train.Config(env="walker-walk", mask_source=f"learned:{path}")) is not None
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("sear.py: warning: --mask-source: the mask model was written "
                                                     "below the IoU floor 0.5 with segment.py train --force"), err
