@@ -832,13 +832,13 @@ class Progress:
         self.flags: list[str] = []  # health warnings, at the end of every line
         self.cost_said = False
         self.longest = {name: self.saved.get(name) or 0 for name in (  # this process's or saved
-            "episode_frames", "episode_seconds", "eval_episode_seconds")}
+            "episode_frames", "episode_seconds", "eval_episode_seconds", "eval_episode_steps")}
 
     def restart_window(self, frame):
         self.window_start, self.window_frame = self.clock(), frame
 
     def see(self, **lengths):
-        """An episode's lengths (episode_frames=, eval_episode_seconds=, ...): the longest kept."""
+        """An episode's lengths (episode_frames=, eval_episode_steps=, ...): the longest kept."""
         self.longest.update({k: max(v, self.longest[k]) for k, v in lengths.items()})
 
     def episode_bound(self) -> float | None:
@@ -886,15 +886,18 @@ class Progress:
         """The scheduled ones (that due now included) and the final one at the budget's end."""
         return max(0, math.ceil((self.total - next_eval) / self.eval_every)) + 1
 
-    def eta(self, frame, next_eval, eval_done=0.0, eval_spent=0.0):
-        """Seconds to the end of the budget, inf while a speed it needs is unknown. While an
-        evaluation runs, `eval_done` is the fraction of its episodes finished and `eval_spent` its
-        seconds so far."""
-        fps = self.learning_fps()
+    def eta(self, frame, next_eval, under_way=None):
+        """Seconds to the end of the budget, inf while a speed it needs is unknown. During an
+        evaluation, scheduled or final, `under_way` is (the fraction of it done, its seconds so
+        far): its rest at its own pace, the evaluations after it at their length."""
+        fps, per_eval = self.learning_fps(), self.eval_length(*(under_way or ()))
+        per_eval = math.inf if per_eval is None else per_eval
         train = 0.0 if frame >= self.total else (self.total - frame) / fps if fps else math.inf
-        evals = self.evals_left(next_eval) - eval_done
-        per_eval = self.eval_length(eval_done, eval_spent)
-        return train + (0.0 if evals <= 0 else math.inf if per_eval is None else evals * per_eval)
+        evals, rest = self.evals_left(next_eval), 0.0
+        if under_way:
+            (done, spent), evals = under_way, evals - 1
+            rest = spent / done - spent if done else max(per_eval - spent, 0.0)
+        return train + rest + (evals * per_eval if evals else 0.0)
 
     def cost(self, frame, next_eval) -> str | None:
         """Once, when this process has first measured its learning speed: what the rest costs."""
@@ -1276,23 +1279,25 @@ class Console:
 
     def show_eval(self, frame, episode, t, untrained: str, next_eval):
         """The line during an evaluation: which episode (of which policy at frame 0) and, once an
-        episode is done, how long it has left."""
+        evaluation episode's steps are known, how long it has left at its pace in episodes and
+        steps."""
         p, now = self.progress, self.progress.clock()
         if episode != self.eval_episode:  # the one before has ended
-            p.see(eval_episode_seconds=now - self.episode_began)
+            p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
             self.eval_episode, self.episode_began = episode, now
-        self.eval_step = t
-        done, spent = episode / self.eval_episodes, now - self.eval_began
+        self.eval_step, steps = t, p.longest["eval_episode_steps"]
+        done = (episode + (min(t / steps, 1.0) if steps else 0.0)) / self.eval_episodes
+        spent = now - self.eval_began
         text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
                 + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
-        p.show(frame, text, p.eta(frame, next_eval, done, spent))
+        p.show(frame, text, p.eta(frame, next_eval, (done, spent)))
 
     def end_eval(self, frame, episodes: int) -> float:
         """The evaluation has ended after `episodes`, whole or cut short; off the training-speed
         clock. Returns its seconds."""
         p, now = self.progress, self.progress.clock()
         if episodes > self.eval_episode:  # its last episode ran to its end
-            p.see(eval_episode_seconds=now - self.episode_began)
+            p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
         seconds, self.evaluating = now - self.eval_began, False
         if episodes == self.eval_episodes:
             p.eval_seconds.append(seconds)

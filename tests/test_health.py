@@ -69,6 +69,34 @@ def test_the_eta_counts_only_the_updates_and_evaluations_it_has_timed(capsys):
                                                                                     "measuring"]
 
 
+def test_the_eta_counts_the_final_evaluation_down_as_it_runs(capsys, monkeypatch):
+    """README's first run (1,300 frames, an evaluation of one 500-step episode every 1,000 and the
+    final one at 1,300) read the same ETA all through a final evaluation three times as long as the
+    one before: the evaluation under way, the final one as a scheduled one, counts at its own pace,
+    step by step."""
+    import types
+    from harness import experiment
+    now = [0.0]
+    monkeypatch.setattr(experiment.time, "time", lambda: now[0])
+    cfg = types.SimpleNamespace(frames=1300, eval_every=1000, seed_frames=1000, action_repeat=2)
+    console = experiment.Console(cfg, types.SimpleNamespace(log_every=0), {"learning_fps": 2.0})
+
+    def evaluate(frame, seconds, next_eval):  # one episode of 500 steps: the ETA at every step
+        console.start_eval(frame, 1, "")
+        for t in range(1, 501):
+            now[0] += seconds / 500
+            console.show_eval(frame, 0, t, "", next_eval)
+        console.end_eval(frame, 1)
+        return re.findall(r"\| ETA (.+?) \| eval 1/1 step", capsys.readouterr().out)
+
+    evaluate(1000, 60.0, next_eval=1000)
+    console.show_step(1200, 1, 100, next_eval=2000)
+    # 100 frames at 2 frames/s, and the final evaluation at the length of the one before
+    assert re.findall(r"\| ETA (.+?) \|", capsys.readouterr().out) == ["1m 50s"]
+    final = evaluate(1300, 180.0, next_eval=2000)  # three times as long: at its own pace
+    assert (final[0], final[249], final[449], final[-1]) == ("3m 00s", "1m 30s", "18s", "0s")
+
+
 def test_off_a_terminal_the_line_is_whole_and_printed_every_log_every_seconds(capsys, monkeypatch):
     """A log file, SLURM, a pipe: each line whole (tqdm's redraws, no carriage return, no trim to
     the width), at most every --log-every seconds, and at every episode end."""
