@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+import tqdm
 
 from harness import cli
 from harness.cli import arg, storing, torch_save, write_atomically
@@ -575,72 +576,60 @@ def duration(seconds: float) -> str:
     return f"{d}d {h}h" if d else f"{h}h {m:02d}m" if h else f"{m}m {s:02d}s" if m else f"{s}s"
 
 
+class Lines:
+    """tqdm's file off a terminal (a log, SLURM, a pipe): each redraw of the bar a line of its own,
+    a clearing nothing; on the stdout of the moment (a seed group redirects it)."""
+
+    def write(self, text):
+        if text := text.replace("\r", "").rstrip():
+            print(text, flush=True)
+
+
 class Progress:
-    """The live line: frame, speed, ETA, what the loop is doing (an episode, or which evaluation
-    episode) and any health warning. On a terminal it is rewritten in place (at least once a
-    second); otherwise (CI logs, nohup) a line is printed every `every` seconds.
+    """The progress line (docs/health.md): a tqdm bar over the frames, in place on a terminal, else
+    a line every `every` seconds. `fps`: the speed since the last episode end, time off training
+    left out (pause()). The ETA: the frames left at the speed of training WITH updates (the seed
+    phase says nothing of it), timed after WARMUP updates and standing once MEASURE_UPDATES over
+    MEASURE_SECONDS are, plus the evaluations left, the final one included; "measuring" until both
+    are timed. The longest episodes bound what a first SIGTERM waits for. A snapshot keeps the
+    speeds and lengths (state()) for a resumed run."""
 
-    `fps` is the speed since the last episode end, less the evaluations and snapshots in between
-    (pause()): train.csv's fps. The ETA counts only what it has measured for what it predicts: the
-    frames left at the speed of training WITH updates (the seed phase steps the env alone, many
-    times faster, and says nothing of it), timed from the WARMUP-th update on, plus the evaluations
-    left at their measured length. Until it has both (MEASURE_UPDATES updates over MEASURE_SECONDS,
-    one evaluation or part of one) it says "measuring". A resumed run starts from the speeds its
-    snapshot kept (state()) until it has measured its own. When the learning speed is first measured
-    one line says what the rest of the run costs on this device (cost()).
+    LINE = "frame {n}/{total} ({percentage:.1f}%) {bar}| {desc}"  # tqdm's; {bar} on a terminal
 
-    It also keeps the longest training episode (frames, and seconds less the pauses) and the longest
-    evaluation episode: how long a first SIGTERM waits at most (episode_bound(),
-    eval_episode_bound())."""
-
-    WIDTH = 120
     WARMUP = 2             # the first updates also build the kernels (oneDNN, cuDNN): not timed
     MEASURE_UPDATES = 10   # the learning speed stands once this many updates after the warm-up ...
     MEASURE_SECONDS = 5.0  # ... and this many seconds of them are timed
 
-    def __init__(self, total, every, eval_every, saved: dict | None = None, clock=time.time):
-        self.total, self.eval_every, self.clock = total, eval_every, clock
-        self.tty = sys.stdout.isatty()
-        self.every = min(every, 1.0) if self.tty else every
-        self.last = 0.0
-        self.fps = 0.0  # frames per second since the last episode end
-        self.eval_seconds = []  # duration of each evaluation of this process
-        self.saved = saved or {}  # the speeds a resumed run's snapshot kept
-        self.updates = 0  # updates of this process (RunDir.log_update)
-        self.learn_frames, self.learn_seconds = 0, 0.0  # timed training with updates, this process
+    def __init__(self, total, every, eval_every, saved: dict | None = None, clock=None):
+        self.total, self.every, self.eval_every = total, every, eval_every
+        self.clock = clock or time.time
+        self.bar = None  # the tqdm line, from the first show()
+        self.fps = 0.0
+        self.eval_seconds = []  # each evaluation of this process
+        self.saved = saved or {}  # the snapshot's state()
+        self.updates = 0  # of this process (RunDir.log_update)
+        self.learn_frames, self.learn_seconds = 0, 0.0  # timed training with updates
         self.tick_time, self.tick_frame, self.tick_updates = None, 0, 0
-        self.window_start, self.window_frame = clock(), 0
-        self.flags: list[str] = []  # health warnings, shown at the end of every line
+        self.window_start, self.window_frame = self.clock(), 0
+        self.flags: list[str] = []  # health warnings, at the end of every line
         self.cost_said = False
-        # The longest episodes of this process and of the snapshot's (see_episode,
-        # see_eval_episode).
-        self.longest = {name: self.saved.get(name) or 0
-                        for name in ("episode_frames", "episode_seconds", "eval_episode_seconds")}
+        self.longest = {name: self.saved.get(name) or 0 for name in (  # this process's or saved
+            "episode_frames", "episode_seconds", "eval_episode_seconds", "eval_episode_steps")}
 
     def restart_window(self, frame):
         self.window_start, self.window_frame = self.clock(), frame
 
-    def see_episode(self, frame):
-        """A training episode ended at `frame` (before restart_window): its frames and seconds."""
-        longest = self.longest
-        longest["episode_frames"] = max(longest["episode_frames"], frame - self.window_frame)
-        longest["episode_seconds"] = max(longest["episode_seconds"], self.clock() - self.window_start)
-
-    def see_eval_episode(self, seconds):
-        self.longest["eval_episode_seconds"] = max(self.longest["eval_episode_seconds"], seconds)
+    def see(self, **lengths):
+        """An episode's lengths (episode_frames=, eval_episode_steps=, ...): the longest kept."""
+        self.longest.update({k: max(v, self.longest[k]) for k, v in lengths.items()})
 
     def episode_bound(self) -> float | None:
-        """Seconds a training episode takes at most, as measured: the longest one yet, or the most
-        frames an episode has had at the slowest speed measured, the learning speed's or the episode
-        under way's (the seed phase's episodes, without updates, are much faster)."""
-        speeds = [self.learning_fps() or math.inf, self.fps if self.tick_frame > self.window_frame else math.inf]
-        slowest = min(speeds)
-        frames = self.longest["episode_frames"] / slowest if slowest and math.isfinite(slowest) else 0.0
+        """Seconds a training episode takes at most, as measured: the longest one, or the most
+        frames one had at the slowest speed measured (learning, or the episode under way)."""
+        now = self.fps if self.tick_frame > self.window_frame else math.inf
+        slowest = min(self.learning_fps() or math.inf, now)
+        frames = self.longest["episode_frames"] / slowest if 0 < slowest < math.inf else 0.0
         return max(self.longest["episode_seconds"], frames) or None
-
-    def eval_episode_bound(self) -> float | None:
-        """Seconds an evaluation episode takes at most, as measured: the longest one yet."""
-        return self.longest["eval_episode_seconds"] or None
 
     def pause(self, seconds):
         """`seconds` spent off training (an evaluation, a snapshot): not counted in any speed."""
@@ -649,8 +638,8 @@ class Progress:
             self.tick_time += seconds
 
     def measure(self, frame):
-        """After every env step: the speeds. A step counts towards the learning speed when the
-        warm-up updates were done before it began."""
+        """After every env step; a step counts towards the learning speed when the warm-up updates
+        were done before it began."""
         now = self.clock()
         if self.tick_time is not None and self.tick_updates >= self.WARMUP:
             self.learn_frames += frame - self.tick_frame
@@ -659,71 +648,84 @@ class Progress:
         self.fps = (frame - self.window_frame) / max(now - self.window_start, 1e-9)
 
     def measured(self) -> bool:
-        return self.updates >= self.WARMUP + self.MEASURE_UPDATES and self.learn_seconds >= self.MEASURE_SECONDS
+        return (self.updates >= self.WARMUP + self.MEASURE_UPDATES
+                and self.learn_seconds >= self.MEASURE_SECONDS)
 
     def learning_fps(self) -> float | None:
-        """Frames per second of training with updates: this process's once measured, else the saved
-        one."""
+        """Frames per second of training with updates: this process's once measured, else saved."""
         return self.learn_frames / self.learn_seconds if self.measured() else self.saved.get("learning_fps")
 
-    def eval_length(self, eval_done=0.0, eval_spent=0.0) -> float | None:
-        """Seconds per evaluation: this process's, else the one under way extrapolated, else the
-        saved one."""
+    def eval_length(self, done=0.0, spent=0.0) -> float | None:
+        """Seconds per evaluation: this process's, else the one under way's pace, else saved."""
         if self.eval_seconds:
             return float(np.mean(self.eval_seconds))
-        return eval_spent / eval_done if eval_done > 0 else self.saved.get("eval_seconds")
+        return spent / done if done > 0 else self.saved.get("eval_seconds")
 
     def state(self) -> dict:
-        """The speeds a snapshot keeps for the ETA of the next start, and the longest episodes."""
         return {"learning_fps": self.learning_fps(), "eval_seconds": self.eval_length(), **self.longest}
 
     def evals_left(self, next_eval):
-        """Scheduled evaluations before the end of the budget (the one due now included), plus the
-        final evaluation at its end."""
-        scheduled = math.ceil((self.total - next_eval) / self.eval_every) if next_eval < self.total else 0
-        return scheduled + 1
+        """The scheduled ones (that due now included) and the final one at the budget's end."""
+        return max(0, math.ceil((self.total - next_eval) / self.eval_every)) + 1
 
-    def eta(self, frame, next_eval, eval_done=0.0, eval_spent=0.0):
-        """Seconds to the end of the budget, inf while a speed it needs is not measured. While an
-        evaluation runs, `eval_done` is the fraction of its episodes finished and `eval_spent` its
-        seconds so far."""
-        fps = self.learning_fps()
+    def eta(self, frame, next_eval, under_way=None):
+        """Seconds to the end of the budget, inf while a speed it needs is unknown. During an
+        evaluation, scheduled or final, `under_way` is (the fraction of it done, its seconds so
+        far): its rest at its own pace, the evaluations after it at their length."""
+        fps, per_eval = self.learning_fps(), self.eval_length(*(under_way or ()))
+        per_eval = math.inf if per_eval is None else per_eval
         train = 0.0 if frame >= self.total else (self.total - frame) / fps if fps else math.inf
-        evals = self.evals_left(next_eval) - eval_done
-        per_eval = self.eval_length(eval_done, eval_spent)
-        return train + (0.0 if evals <= 0 else math.inf if per_eval is None else evals * per_eval)
+        evals, rest = self.evals_left(next_eval), 0.0
+        if under_way:
+            (done, spent), evals = under_way, evals - 1
+            rest = spent / done - spent if done else max(per_eval - spent, 0.0)
+        return train + rest + (evals * per_eval if evals else 0.0)
 
     def cost(self, frame, next_eval) -> str | None:
-        """Once, when this process has first measured its learning speed: what the rest costs
-        here."""
+        """Once, when this process has first measured its learning speed: what the rest costs."""
         if self.cost_said or not self.measured():
             return None
-        self.cost_said = True
-        fps, left, evals, per_eval = self.learning_fps(), max(0, self.total - frame), self.evals_left(next_eval), \
-            self.eval_length()
+        self.cost_said, fps, left = True, self.learning_fps(), max(0, self.total - frame)
+        evals, per_eval = self.evals_left(next_eval), self.eval_length()
         line = (f"cost on this device: {fps:.3g} frames/s with updates (timed over "
                 f"{self.updates - self.WARMUP} updates), so the {left:,} frames left take "
                 f"{duration(left / fps)}")
-        evaluations = f"{evals} evaluation{'s' * (evals != 1)}"
+        evaluations = cli.plural(evals, "evaluation")
         if per_eval is None:
             return line + f", plus {evaluations} not timed yet"
+        total = duration(left / fps + evals * per_eval)
         return (line + f", and the {evaluations} left {duration(evals * per_eval)} "
-                       f"({duration(per_eval)} each): "
-                f"about {duration(left / fps + evals * per_eval)} in all")
+                f"({duration(per_eval)} each): about {total} in all")
 
-    def update(self, frame, text, eta, force=False):
-        now = self.clock()
-        if not force and now - self.last < self.every:
+    def show(self, frame, text, eta, force=False):
+        """The line, at most every `every` seconds (at least every second on a terminal: tqdm's
+        mininterval), or now (force: an episode's end)."""
+        line = " | ".join([f"{self.fps:.1f} fps", f"ETA {duration(eta)}", text, *self.flags])
+        if self.bar is None:  # made where stdout is now (a seed group redirects it)
+            # a terminal with a size (tqdm hides its bar on one without, a pty of `script`)
+            tty = sys.stdout.isatty() and shutil.get_terminal_size((0, 0)).lines > 0
+            self.bar = tqdm.tqdm(  # shows its first line
+                total=max(self.total, frame), initial=frame, desc=line, position=0, leave=tty,
+                bar_format=self.LINE.replace("{bar}", "{bar:12} " if tty else ""),
+                file=sys.stdout if tty else Lines(), dynamic_ncols=tty, miniters=0,
+                mininterval=min(self.every, 1.0) if tty else self.every)
             return
-        self.last = now
-        line = (f"frame {frame}/{self.total} ({100 * frame / self.total:.1f}%) | {self.fps:.1f} "
-                f"fps | ETA {duration(eta)} | {text}" + "".join(f" | {flag}" for flag in self.flags))
-        print(("\r" + line.ljust(self.WIDTH)) if self.tty else line, end="" if self.tty else "\n", flush=True)
+        self.bar.total = max(self.bar.total, frame)  # a budget no multiple of the action repeat
+        self.bar.set_description_str(line, refresh=False)
+        if not self.bar.update(frame - self.bar.n) and force:
+            self.bar.refresh()
+            self.bar.unpause()  # tqdm's interval restarts from this line
 
-    def say(self, message):
-        """A line of its own (evaluation result, snapshot); on a terminal it replaces the live
-        line."""
-        print(("\r" + message.ljust(self.WIDTH)) if self.tty else message, flush=True)
+    @staticmethod
+    def say(message):
+        """A line of its own: on a terminal above the bar, which is redrawn below it."""
+        with tqdm.tqdm.external_write_mode():
+            print(message, flush=True)
+
+    def close(self):
+        """The line's end (RunDir.release): on a terminal it stays, and what follows goes below."""
+        if self.bar is not None:
+            self.bar.close()
 
 
 class Health:
@@ -974,28 +976,26 @@ class RunFiles:
 
 class Console:
     """What a run shows: what runs where and how long it should take, at its start; the progress
-    line (Progress: speed, ETA, what the loop is doing, health warnings) during episodes and
-    evaluations; each evaluation's result and each snapshot; and what a first SIGTERM waits for."""
+    line during episodes and evaluations; each evaluation's result and each snapshot; and what a
+    first SIGTERM waits for."""
 
     def __init__(self, cfg, run: cli.RunConfig, saved: dict | None):
         self.cfg = cfg
         self.progress = Progress(cfg.frames, run.log_every, cfg.eval_every, saved)
         self.evaluating = False  # between start_eval() and end_eval()
-        # wall clock: the evaluation's start, its episode's
-        self.eval_began = self.episode_began = 0.0
+        self.eval_began = self.episode_began = 0.0  # the evaluation's start, its episode's
         self.eval_episodes = self.eval_episode = self.eval_step = 0  # its length, where it is
 
     def say_run(self, path, agent, buffer):
-        cfg = self.cfg
+        cfg, replay = self.cfg, buffer.bytes_per_transition
         print(f"run dir: {path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device "
               f"{agent.device} | action repeat {cfg.action_repeat} | replay {cfg.replay_size} x "
-              f"{buffer.bytes_per_transition} B = "
-              f"{cfg.replay_size * buffer.bytes_per_transition / 1e9:.2f} GB at most")
+              f"{replay} B = {cfg.replay_size * replay / 1e9:.2f} GB at most")
         if cfg.mask_source != "sim":
             print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the "
-                  "simulator's mask "
-                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
-                     else "is never rendered)"))
+                  "simulator's mask " + ("is rendered in evaluation episodes only, for "
+                                         "learned_mask_iou)" if cfg.learned_mask_iou
+                                         else "is never rendered)"))
 
     def say_expected_time(self, frame, next_eval):
         p = self.progress
@@ -1011,59 +1011,62 @@ class Console:
     def tick(self, frame, next_eval):
         """After every env step: the speeds, and once they are measured what the run costs here."""
         self.progress.measure(frame)
-        cost = self.progress.cost(frame, next_eval)
-        if cost:
+        if cost := self.progress.cost(frame, next_eval):
             self.progress.say(cost)
 
     def show_step(self, frame, episode, ep_len, next_eval):
         self.tick(frame, next_eval)
-        self.progress.update(frame, f"ep {episode} step {ep_len}", self.progress.eta(frame, next_eval))
+        p = self.progress
+        p.show(frame, f"ep {episode} step {ep_len}", p.eta(frame, next_eval))
 
     def show_episode(self, frame, episode, ep_return, next_eval):
         """The line of an episode that just ended (after tick()); its length is measured."""
         p = self.progress
-        p.update(frame, f"ep {episode} return {ep_return:.1f}", p.eta(frame, next_eval), force=True)
-        p.see_episode(frame)
+        p.show(frame, f"ep {episode} return {ep_return:.1f}", p.eta(frame, next_eval), force=True)
+        p.see(episode_frames=frame - p.window_frame, episode_seconds=p.clock() - p.window_start)
         p.restart_window(frame)
 
     def warn(self, kind, message):
-        """A health warning: on stderr, and on the progress line from now on."""
+        """A health warning: on stderr (above the bar on a terminal), and on the line from now
+        on."""
         self.progress.flags.append(f"warning: {kind}")
-        cli.warn(message)
+        with tqdm.tqdm.external_write_mode(file=sys.stderr):
+            cli.warn(message)
 
     def start_eval(self, frame, episodes: int, untrained: str):
         self.evaluating, self.eval_episodes, self.eval_episode, self.eval_step = True, episodes, 0, 0
-        self.eval_began = self.episode_began = time.time()
+        self.eval_began = self.episode_began = self.progress.clock()
         self.progress.say(f"evaluating at frame {frame} ({cli.plural(episodes, 'episode')})"
                           + (f": {untrained}, before any update" if untrained else ""))
 
     def show_eval(self, frame, episode, t, untrained: str, next_eval):
-        """The progress line during an evaluation: which episode, of which policy at frame 0, and
-        once an episode is done how long the evaluation has left."""
-        now = time.time()
+        """The line during an evaluation: which episode (of which policy at frame 0) and, once an
+        evaluation episode's steps are known, how long it has left at its pace in episodes and
+        steps."""
+        p, now = self.progress, self.progress.clock()
         if episode != self.eval_episode:  # the one before has ended
-            self.progress.see_eval_episode(now - self.episode_began)
+            p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
             self.eval_episode, self.episode_began = episode, now
-        self.eval_step = t
-        done, spent = episode / self.eval_episodes, now - self.eval_began
+        self.eval_step, steps = t, p.longest["eval_episode_steps"]
+        done = (episode + (min(t / steps, 1.0) if steps else 0.0)) / self.eval_episodes
+        spent = now - self.eval_began
         text = (f"eval {episode + 1}/{self.eval_episodes} step {t}" + (f" ({untrained})" if untrained else "")
                 + (f", ends in ~{duration(spent / done - spent)}" if done else ""))
-        self.progress.update(frame, text, self.progress.eta(frame, next_eval, done, spent))
+        p.show(frame, text, p.eta(frame, next_eval, (done, spent)))
 
     def end_eval(self, frame, episodes: int) -> float:
         """The evaluation has ended after `episodes`, whole or cut short; off the training-speed
         clock. Returns its seconds."""
-        now = time.time()
+        p, now = self.progress, self.progress.clock()
         if episodes > self.eval_episode:  # its last episode ran to its end
-            self.progress.see_eval_episode(now - self.episode_began)
+            p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
         seconds, self.evaluating = now - self.eval_began, False
         if episodes == self.eval_episodes:
-            self.progress.eval_seconds.append(seconds)
+            p.eval_seconds.append(seconds)
         else:
-            self.progress.say(f"evaluation at frame {frame} stopped by SIGTERM after {episodes} of "
-                              f"{self.eval_episodes} episodes: no eval.csv row; a resume evaluates "
-                              "again")
-        self.progress.pause(seconds)
+            p.say(f"evaluation at frame {frame} stopped by SIGTERM after {episodes} of "
+                  f"{self.eval_episodes} episodes: no eval.csv row; a resume evaluates again")
+        p.pause(seconds)
         return seconds
 
     def say_eval(self, frame, row: dict, scores: dict, seconds: float):
@@ -1075,16 +1078,14 @@ class Console:
     def waits_for(self, frame, mid_episode: bool) -> str:
         """What a first SIGTERM waits for, and how long at most as measured (cli.TermSignal's
         line)."""
-        p = self.progress
+        p, longest = self.progress, self.progress.longest["eval_episode_seconds"]
         episode = (f"at most one episode: ~{duration(math.ceil(p.episode_bound()))}, measured"
                    if p.episode_bound() else "at most one episode, not timed yet in this process")
         if not self.evaluating:
             return f"the next episode end ({episode}), with a snapshot"
-        if p.eval_episode_bound():
-            bound = f"at most ~{duration(math.ceil(p.eval_episode_bound()))}, measured"
-        else:
-            bound = (f"not timed yet: the first of this process, at step {self.eval_step} after "
-                     f"{duration(time.time() - self.episode_began)}")
+        bound = (f"at most ~{duration(math.ceil(longest))}, measured" if longest else
+                 f"not timed yet: the first of this process, at step {self.eval_step} after "
+                 f"{duration(p.clock() - self.episode_began)}")
         then = (f", then the end of the training episode under way ({episode})"
                 if mid_episode and frame < self.cfg.frames else "")
         return (f"the end of this evaluation episode ({bound}){then}, with a snapshot; the "
@@ -1252,6 +1253,7 @@ class RunDir:
         return self.console.waits_for(self.frame, self.counters.mid_episode)
 
     def release(self):
+        self.console.progress.close()
         cli.TERM.defer = cli.TERM.pending = False
         cli.TERM.stands = cli.TERM.waits_for = None
         self.files.release()

@@ -4,6 +4,7 @@ diverging critic is warned of, once), the disk a run needs, and no run directory
 snapshot. Unit tests of experiment.Progress / Health / FiniteActions, and `python sear.py ...` end
 to end (tiny budgets, CPU): drivers patch sear.py's agent to make a failure happen on cue."""
 import math
+import os
 import re
 import subprocess
 import sys
@@ -47,8 +48,7 @@ def test_the_eta_counts_only_the_updates_and_evaluations_it_has_timed(capsys):
     steps(500, 0.01)  # the seed phase: the env alone, 100x faster than training with updates
     p.eval_seconds = [60.0]
     assert p.learning_fps() is None and p.eta(frame[0], next_eval=10_000) == math.inf
-    p.tty = True
-    p.update(frame[0], "ep 3 step 10", p.eta(frame[0], next_eval=10_000))
+    p.show(frame[0], "ep 3 step 10", p.eta(frame[0], next_eval=10_000))
     assert "| ETA measuring | ep 3 step 10" in capsys.readouterr().out
     steps(2, 30.0, updates=1)  # the first updates build kernels: not timed
     steps(9, 1.0, updates=1)  # 9 updates timed over 9 s: not yet MEASURE_UPDATES (10 after the warm-up) ...
@@ -67,6 +67,85 @@ def test_the_eta_counts_only_the_updates_and_evaluations_it_has_timed(capsys):
     assert experiment.duration(resumed.eta(20_000, next_eval=20_000)) == "5d 17h"
     assert [experiment.duration(s) for s in (7.4, 125, 3 * 3600 + 61, math.inf)] == ["7s", "2m 05s", "3h 01m",
                                                                                     "measuring"]
+
+
+def test_the_eta_counts_the_final_evaluation_down_as_it_runs(capsys, monkeypatch):
+    """README's first run (1,300 frames, an evaluation of one 500-step episode every 1,000 and the
+    final one at 1,300) read the same ETA all through a final evaluation three times as long as the
+    one before: the evaluation under way, the final one as a scheduled one, counts at its own pace,
+    step by step."""
+    import types
+    from harness import experiment
+    now = [0.0]
+    monkeypatch.setattr(experiment.time, "time", lambda: now[0])
+    cfg = types.SimpleNamespace(frames=1300, eval_every=1000, seed_frames=1000, action_repeat=2)
+    console = experiment.Console(cfg, types.SimpleNamespace(log_every=0), {"learning_fps": 2.0})
+
+    def evaluate(frame, seconds, next_eval):  # one episode of 500 steps: the ETA at every step
+        console.start_eval(frame, 1, "")
+        for t in range(1, 501):
+            now[0] += seconds / 500
+            console.show_eval(frame, 0, t, "", next_eval)
+        console.end_eval(frame, 1)
+        return re.findall(r"\| ETA (.+?) \| eval 1/1 step", capsys.readouterr().out)
+
+    evaluate(1000, 60.0, next_eval=1000)
+    console.show_step(1200, 1, 100, next_eval=2000)
+    # 100 frames at 2 frames/s, and the final evaluation at the length of the one before
+    assert re.findall(r"\| ETA (.+?) \|", capsys.readouterr().out) == ["1m 50s"]
+    final = evaluate(1300, 180.0, next_eval=2000)  # three times as long: at its own pace
+    assert (final[0], final[249], final[449], final[-1]) == ("3m 00s", "1m 30s", "18s", "0s")
+
+
+def test_off_a_terminal_the_line_is_whole_and_printed_every_log_every_seconds(capsys, monkeypatch):
+    """A log file, SLURM, a pipe: each line whole (tqdm's redraws, no carriage return, no trim to
+    the width), at most every --log-every seconds, and at every episode end."""
+    import tqdm.std
+    from harness import experiment
+    now = [0.0]
+    monkeypatch.setattr(tqdm.std, "time", lambda: now[0])
+    monkeypatch.setenv("COLUMNS", "40")
+    p = experiment.Progress(total=100_000, every=10, eval_every=10_000, clock=lambda: now[0])
+    for step in range(1, 31):  # 30 s, a step a second; an episode ends at step 25
+        now[0] += 1.0
+        p.measure(2 * step)
+        text = "ep 0 return 1.0" if step == 25 else f"ep 0 step {step}"
+        p.show(2 * step, text, math.inf, force=step == 25)
+    p.say("snapshot at frame 60")
+    p.close()
+    assert capsys.readouterr().out.splitlines() == [
+        f"frame {frame}/100000 ({frame / 1000:.1f}%) | 2.0 fps | ETA measuring | ep 0 {what}"
+        for frame, what in ((2, "step 1"), (22, "step 11"), (42, "step 21"), (50, "return 1.0"))
+    ] + ["snapshot at frame 60"]
+
+
+def test_on_a_terminal_the_bar_stays_in_place_under_the_lines_said(monkeypatch):
+    """A terminal: the bar redrawn in place and trimmed to its width; a line said goes above it."""
+    import io
+    from harness import experiment
+
+    class Terminal(io.StringIO):  # 60 columns
+        encoding = "utf-8"
+
+        def isatty(self):
+            return True
+
+        def fileno(self):
+            return 1
+    monkeypatch.setattr(sys, "stdout", Terminal())
+    monkeypatch.setattr(os, "get_terminal_size", lambda fd: os.terminal_size((61, 24)))
+    p = experiment.Progress(total=1000, every=10, eval_every=100)
+    p.show(500, "ep 0 step 250", 60.0)
+    p.say("snapshot at frame 500")
+    p.close()
+    screen = []  # what the terminal shows: each carriage return writes over the line from its start
+    for line in sys.stdout.getvalue().split("\n"):
+        text = ""
+        for part in line.split("\r"):
+            text = part + text[len(part):]
+        screen.append(text.rstrip())
+    bar = "frame 500/1000 (50.0%) ██████       | 0.0 fps | ETA 1m 00s |"  # trimmed to the width
+    assert screen == ["snapshot at frame 500", bar, ""]
 
 
 def test_speeds_survive_a_resume_and_the_cost_is_said_once_measured(tmp_path):
