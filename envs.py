@@ -778,7 +778,14 @@ class _DMCBackend:
         self.camera = 2 if domain == "quadruped" else 0   # DrQ-v2 convention
         self.robot_root = _DMC_ROBOT_ROOTS.get(domain) or self._default_root()
         spec = self.env.action_spec()
-        self._low, self._high = spec.minimum.astype(np.float64), spec.maximum.astype(np.float64)
+        # DrQ-v2's action path (its dmc.py, and the authors'): dm_control's action_scale.Wrapper maps
+        # [-1, 1] onto the bounds of an ActionDTypeWrapper(float32) spec, which holds them in float32,
+        # computes in float64 and casts the result to float32; the ActionDTypeWrapper hands that on
+        # as float64.  So the bounds are float32 here, and dm_control receives a float32 value, bit for
+        # bit the one DrQ-v2's code gives on this project's NumPy (run_official.py's runs; under its
+        # NumPy 1.19, value-based casting also rounded action + 1 to float32 before the scaling).
+        low, high = spec.minimum.astype(np.float32), spec.maximum.astype(np.float32)
+        self._low, self._scale = low.astype(np.float64), (high - low) / np.float64(2.0)
         self.action_dim = int(spec.shape[0])
 
     def _default_root(self) -> str:
@@ -796,8 +803,9 @@ class _DMCBackend:
         self.env.reset()
 
     def step(self, action: np.ndarray):
-        # Agent actions live in [-1, 1]; map to the actuator spec.
-        a = self._low + (np.asarray(action, np.float64) + 1.0) * 0.5 * (self._high - self._low)
+        # Agent actions live in [-1, 1]; map to the actuator spec as DrQ-v2 does (__init__).
+        a = self._low + self._scale * (np.asarray(action, np.float64) + 1.0)
+        a = a.astype(np.float32).astype(np.float64)
         ts = self.env.step(a)
         reward = float(ts.reward or 0.0)
         if ts.last():
