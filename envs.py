@@ -55,6 +55,8 @@ suite's own settings, ``"fast"`` switches off shadows and multisampling).
 
 Run ``python envs.py --gallery runs/suites.png`` to draw RGB | mask | overlay
 for one task of every suite (``--force`` to overwrite an existing picture).
+``python envs.py --robot NAME`` checks an env's robot mask: its root body, the
+robot's bodies, each geom's pixels in view (docs/robots.md: a robot of your own).
 """
 from __future__ import annotations
 
@@ -87,6 +89,7 @@ __all__ = [
     "EnvError", "env_names", "default_action_repeat", "robot_name", "is_task_set", "metaworld_set_tasks", "make_env",
     "SEAREnv", "robot_geoms", "robot_pixels", "downsample_mask", "approximate_mask", "procedural_background",
     "d4rl_reward", "exploration_std_steps", "Backgrounds", "FetchError", "davis_cache", "fetch_davis",
+    "robot_report",
 ]
 
 
@@ -104,15 +107,17 @@ class EnvError(ValueError):
 # dm_control domain aliases used in env names (DrQ-v2 / SEAR convention).
 _DMC_ALIASES = {"cup": "ball_in_cup"}
 
-# Robot root body per dm_control domain.  Domains not listed fall back to the
-# first child body of the world that has a joint in its subtree (the first
-# moving body tree in the MJCF), which is the agent for every suite domain we
-# checked but is only a heuristic.
+# Robot root body per dm_control domain: the robot is this body's subtree (robot_geoms).  A new
+# domain's root is named here (docs/robots.md; `python envs.py --robot NAME` checks it).  Domains
+# not listed fall back to the first child body of the world that has a joint in its subtree (the
+# first moving body tree in the MJCF): only a heuristic, and --robot says it guessed.
 _DMC_ROBOT_ROOTS = {
     "walker": "torso", "ball_in_cup": "cup", "cheetah": "torso",
     "hopper": "torso", "quadruped": "torso", "humanoid": "torso",
     "reacher": "arm", "finger": "proximal", "cartpole": "cart",
     "acrobot": "upper_arm", "pendulum": "pole", "fish": "torso",
+    "swimmer": "head", "point_mass": "pointmass", "manipulator": "upper_arm",
+    "stacker": "upper_arm",
 }
 
 # Kitchen env name -> FrankaKitchen sub-tasks to complete in one episode.  "multitask" is D4RL's
@@ -777,8 +782,16 @@ class _DMCBackend:
         self.domain = domain
         self.camera = 2 if domain == "quadruped" else 0   # DrQ-v2 convention
         self.robot_root = _DMC_ROBOT_ROOTS.get(domain) or self._default_root()
+        self.robot_root_named = domain in _DMC_ROBOT_ROOTS   # False: _default_root's guess
         spec = self.env.action_spec()
-        self._low, self._high = spec.minimum.astype(np.float64), spec.maximum.astype(np.float64)
+        # DrQ-v2's action path (its dmc.py, and the authors'): dm_control's action_scale.Wrapper maps
+        # [-1, 1] onto the bounds of an ActionDTypeWrapper(float32) spec, which holds them in float32,
+        # computes in float64 and casts the result to float32; the ActionDTypeWrapper hands that on
+        # as float64.  So the bounds are float32 here, and dm_control receives a float32 value, bit for
+        # bit the one DrQ-v2's code gives on this project's NumPy (run_official.py's runs; under its
+        # NumPy 1.19, value-based casting also rounded action + 1 to float32 before the scaling).
+        low, high = spec.minimum.astype(np.float32), spec.maximum.astype(np.float32)
+        self._low, self._scale = low.astype(np.float64), (high - low) / np.float64(2.0)
         self.action_dim = int(spec.shape[0])
 
     def _default_root(self) -> str:
@@ -796,8 +809,9 @@ class _DMCBackend:
         self.env.reset()
 
     def step(self, action: np.ndarray):
-        # Agent actions live in [-1, 1]; map to the actuator spec.
-        a = self._low + (np.asarray(action, np.float64) + 1.0) * 0.5 * (self._high - self._low)
+        # Agent actions live in [-1, 1]; map to the actuator spec as DrQ-v2 does (__init__).
+        a = self._low + self._scale * (np.asarray(action, np.float64) + 1.0)
+        a = a.astype(np.float32).astype(np.float64)
         ts = self.env.step(a)
         reward = float(ts.reward or 0.0)
         if ts.last():
@@ -1469,6 +1483,74 @@ def mask_downsample_figure(path: str, name: str = "metaworld-door-open", seed: i
     plt.close(fig)
 
 
+# ----------------------------------------------------------------------------
+# Checking a robot root (docs/robots.md)
+# ----------------------------------------------------------------------------
+
+def robot_report(env: SEAREnv, frames: int = 5, seed: int = 0) -> dict:
+    """What the robot-mask rule makes of an env, to check its robot root (``--robot``).
+
+    Over ``frames`` frames (the reset's, then random actions) it counts the segmentation's pixels
+    of each geom in view, robot or not, and compares ``obs["mask"]`` with the robot geoms' pixels
+    of the same render, brought to the observation size by majority (IoU 1.0: the mask is the
+    segmentation's robot; an opening, mask noise or a mask model lower it).  Returns ``root``,
+    ``named`` (False: guessed by ``_DMCBackend._default_root``), ``bodies`` (the robot's),
+    ``robot_px`` and ``other_px`` ({geom label: pixels}), ``mask_fraction`` and ``iou``.
+    """
+    m, rng = env.model, np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    counts = np.zeros(m.ngeom, np.int64)
+    inter = union = 0
+    fraction = 0.0
+    for i in range(frames):
+        if i:
+            obs, _, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
+            if terminated or truncated:
+                obs, _ = env.reset()
+        seg = env.segmentation()
+        is_geom = seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)
+        counts += np.bincount(seg[..., 0][is_geom], minlength=m.ngeom)
+        robot = downsample_mask(robot_pixels(seg, env.geom_is_robot), env.mask_scale, "majority")
+        robot = robot[::-1, ::-1] if env.backend.flip else robot
+        mask = obs["mask"][-1].astype(bool)
+        inter, union = inter + int((mask & robot).sum()), union + int((mask | robot).sum())
+        fraction += float(mask.mean()) / frames
+
+    def label(g):
+        return f"{m.geom(g).name or f'geom {g}'} ({m.body(m.geom_bodyid[g]).name or 'world'})"
+
+    root, others = m.body(env.robot_root).id, np.flatnonzero(~env.geom_is_robot & (counts > 0))
+    return {"root": env.robot_root, "named": getattr(env.backend, "robot_root_named", True),
+            "bodies": [m.body(b).name for b in np.flatnonzero(body_subtree(m, root))],
+            "robot_px": {label(g): int(counts[g]) for g in np.flatnonzero(env.geom_is_robot)},
+            "other_px": {label(g): int(counts[g]) for g in others},
+            "mask_fraction": fraction, "iou": inter / union if union else float("nan")}
+
+
+def _print_robot_report(name: str, frames: int) -> None:
+    env = make_env(name, seed=0, frame_stack=1, render_quality="fast")
+    try:
+        r = robot_report(env, frames=frames)
+    finally:
+        env.close()
+    where = ("named in envs._DMC_ROBOT_ROOTS" if r["named"] and env.backend.__class__ is _DMCBackend
+             else "named by its backend" if r["named"]
+             else "GUESSED (the first moving body tree): name it in envs._DMC_ROBOT_ROOTS")
+
+    def px(counts: dict) -> str:
+        ranked = sorted(counts.items(), key=lambda kv: -kv[1])
+        return ", ".join(f"{k} {v}" for k, v in ranked) or "none"
+
+    print(f"{name}: robot root body {r['root']!r}, {where}")
+    print(f"robot bodies ({len(r['bodies'])}): {', '.join(r['bodies'])}")
+    print(f"mask: {100 * r['mask_fraction']:.1f}% of the frame over {frames} frames; IoU with the "
+          f"segmentation's robot geoms {r['iou']:.3f}")
+    print(f"robot geoms, px in view: {px({k: v for k, v in r['robot_px'].items() if v})}")
+    unseen = [k for k, v in r["robot_px"].items() if not v]
+    print(f"robot geoms never in view: {', '.join(unseen) or 'none'}")
+    print(f"other geoms in view (not robot), px: {px(r['other_px'])}")
+
+
 class _OneLineParser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message}\n")
@@ -1484,6 +1566,11 @@ def main(argv=None) -> int:
                         help="backgrounds for *-distracting: davis (the cache, see --fetch-davis) or a folder")
     parser.add_argument("--render-quality", default="paper", choices=["paper", "fast"])
     parser.add_argument("--list", action="store_true", help="print the registered env names")
+    parser.add_argument("--robot", metavar="NAME",
+                        help="check an env's robot mask: its root body, the robot's bodies, the "
+                             "pixels of each geom in view, robot or not (docs/robots.md)")
+    parser.add_argument("--frames", type=int, default=5,
+                        help="frames of random actions for --robot")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --gallery / --mask-figure PNG")
     parser.add_argument("--fetch-davis", action="store_true",
                         help=f"download DAVIS-2017 trainval 480p ({DAVIS_BYTES / 1e6:.0f} MB, the paper's Distracting "
@@ -1494,8 +1581,11 @@ def main(argv=None) -> int:
     parser.add_argument("--davis-url", metavar="URL", default=DAVIS_URL,
                         help="--fetch-davis from a mirror (its size and SHA-256 are still the official archive's)")
     args = parser.parse_args(argv)
-    if not (args.gallery or args.mask_figure or args.list or args.fetch_davis):
-        parser.error("nothing to do: give --gallery PNG, --mask-figure PNG, --list or --fetch-davis")
+    if not (args.gallery or args.mask_figure or args.list or args.fetch_davis or args.robot):
+        parser.error("nothing to do: give --gallery PNG, --mask-figure PNG, --robot NAME, --list "
+                     "or --fetch-davis")
+    if args.frames < 1:
+        parser.error(f"--frames must be at least 1, got {args.frames}")
     if args.fetch_davis:
         return _fetch_main(args.cache, args.davis_url)
     try:
@@ -1506,8 +1596,12 @@ def main(argv=None) -> int:
             _parse_name(name)
         if args.backgrounds is not None:
             Backgrounds(args.backgrounds, "train", "hard")
+        if args.robot:
+            _parse_name(args.robot)
         if args.list:
             print("\n".join(env_names()))
+        if args.robot:
+            _print_robot_report(args.robot, args.frames)
         if args.gallery:
             gallery(args.gallery, args.envs, backgrounds=args.backgrounds,
                     render_quality=args.render_quality)

@@ -387,6 +387,49 @@ def test_adroit_dropped_pen_ends_the_episode_as_truncation(get_env):
         env.step(zero)
 
 
+@pytest.mark.parametrize("name", ["quadruped-walk", "walker-walk"])
+def test_dm_control_receives_drqv2s_float32_action(name):
+    """DrQ-v2's dmc.py wraps a suite task in ActionDTypeWrapper(float32), then dm_control's own
+    action_scale.Wrapper(-1, 1): the scaled action is a float32 value, handed to dm_control as
+    float64. Quadruped's bounds (-1 .. 1.1) make that rounding visible; walker's (-1 .. 1) do not."""
+    from dm_control.suite.wrappers import action_scale
+    from dm_env import specs
+
+    env = make_env(name, seed=0, frame_stack=1, render_quality="fast", render_mask=False)
+    received = []
+    dmc_step = env.backend.env.step
+    env.backend.env.step = lambda a: (received.append(np.array(a, copy=True)), dmc_step(a))[1]
+
+    class Float32Spec:   # ActionDTypeWrapper(env, np.float32) over the same task
+        def __init__(self, spec):
+            self.spec = specs.BoundedArray(spec.shape, np.float32, spec.minimum, spec.maximum, "action")
+            self.received = []
+
+        def action_spec(self):
+            return self.spec
+
+        def step(self, action):
+            self.received.append(action.astype(env.backend.env.action_spec().dtype))
+
+    inner = Float32Spec(env.backend.env.action_spec())
+    drqv2 = action_scale.Wrapper(inner, minimum=-1.0, maximum=+1.0)
+    rng = np.random.default_rng(0)
+    actions = [rng.uniform(-1, 1, env.action_space.shape).astype(np.float32) for _ in range(20)]
+    actions += [np.full(env.action_space.shape, v, np.float32) for v in (-1.0, 1.0, 1e-9, -0.3)]
+    env.reset(seed=0)
+    for action in actions:
+        _, _, terminated, truncated, _ = env.step(action)
+        drqv2.step(action)
+        assert not (terminated or truncated)
+    env.close()
+    ours = received[::env.action_repeat]   # the same action at every repeat
+    assert len(ours) == len(inner.received) == len(actions)
+    for a, b in zip(ours, inner.received):
+        assert a.dtype == b.dtype == np.float64
+        assert np.array_equal(a, b)                          # bit for bit
+        assert np.array_equal(a, a.astype(np.float32))       # a float32 value
+
+
 def test_action_repeat_sums_rewards():
     one = make_env("walker-walk", seed=3, action_repeat=1, render_quality="fast")
     two = make_env("walker-walk", seed=3, action_repeat=2, render_quality="fast")
