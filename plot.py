@@ -653,7 +653,10 @@ def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
     hook = agent.encoder.convs.register_forward_hook(lambda module, inputs, output: caught.append(output))
     try:
         with torch.no_grad():
-            x = agent.encoder_input(torch.as_tensor(pixels).float(), torch.as_tensor(masks).float())
+            from methods import baselines
+            x = torch.as_tensor(pixels).float()
+            if isinstance(agent, baselines.RGBMAgent):
+                x = baselines.with_masks(x, torch.as_tensor(masks).float())
             agent.encode(x)
     finally:
         hook.remove()

@@ -1,14 +1,11 @@
 """SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023).
 
-DrQ-v2 (DDPG from pixels: random-shift augmentation, n-step returns, clipped double-Q, linearly
-decaying exploration noise) whose image encoder is also trained by two decoders on a latent split in
-two halves: one half predicts the robot's binary segmentation mask (Eq. 4), the other reconstructs
-the image (Eq. 5); the total loss is Eq. 6, L = L_critic + c1 * L_recon + c2 * L_mask (c1 = 0.01,
-c2 = 0.0025). Other representation losses plug into the same seam (`AuxLoss`, a row of `METHODS`):
-methods/ holds the paper's baselines, Ego-Foresight and DrM (`DrMAgent`). In reading order:
-1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent, 6. Replay buffer.
-It needs torch, numpy and the standard library only; the loop, the envs and the command line stand
-on it in train.py: `python sear.py --env walker-walk-distracting` runs train.py.
+DrQ-v2 (DDPG from pixels: random shifts, n-step returns, clipped double-Q, a linearly decaying
+exploration std) whose encoder is also trained by two decoders on a latent split in two halves: one
+predicts the robot's binary mask (Eq. 4), the other reconstructs the image (Eq. 5); the loss is
+Eq. 6, L = L_critic + c1 L_recon + c2 L_mask. Sections: 1. Config, 2. Networks, 3. Augmentation,
+4. Auxiliary losses and METHODS, 5. Agent, 6. Replay buffer. torch, numpy and the standard library
+only; `python sear.py --env walker-walk-distracting` runs the loop, train.py.
 """
 from __future__ import annotations
 
@@ -24,7 +21,6 @@ import torch.nn.functional as F
 
 # ================================================================================================
 # 1. Config
-# ================================================================================================
 def arg(default, doc, choices=None):  # a config field, its one-line doc (--help), its values if a fixed set
     return field(default=default, metadata={"doc": doc, "choices": choices})
 
@@ -63,7 +59,6 @@ class Config:
 
 # ================================================================================================
 # 2. Networks
-# ================================================================================================
 def weight_init(m, generator=None):
     """DrQ-v2's init: orthogonal weights, zero biases (ReLU gain for convolutions)."""
     if isinstance(m, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
@@ -74,7 +69,7 @@ def weight_init(m, generator=None):
 
 
 def normalise(pixels):
-    """Pixels in [0, 255] to [-0.5, 0.5]: what the encoder reads and Eq. 5 reconstructs (DrQ-v2's)."""
+    """Pixels in [0, 255] to [-0.5, 0.5]: what the encoder reads and Eq. 5 reconstructs."""
     return pixels / 255.0 - 0.5
 
 
@@ -118,12 +113,12 @@ class PooledEncoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """The decoder body of the mask and the reconstruction heads (appendix "Architecture"):
-    8x8 -> 35 (k4 s4, output_padding 3) -> 37 -> 39 -> 41 (k3 s1) -> 84 (k3 s2, output_padding 1)."""
+    """The mask and reconstruction heads' body (appendix "Architecture"), from 16 channels (DrQ-AE:
+    32) at 8x8: -> 35 (k4 s4, output_padding 3) -> 37 -> 39 -> 41 (k3) -> 84 (k3 s2, padding 1)."""
 
     def __init__(self, in_dim: int, out_channels: int, in_channels: int = 16):
         super().__init__()
-        self.in_channels = in_channels  # 16 for SEAR's heads; DrQ-AE's starts from 32 (authors' code)
+        self.in_channels = in_channels
         self.fc = nn.Sequential(nn.Linear(in_dim, in_channels * 8 * 8), nn.ReLU())
         self.deconvs = nn.Sequential(
             nn.ConvTranspose2d(in_channels, 16, 4, stride=4, output_padding=3), nn.ReLU(),
@@ -145,8 +140,8 @@ class TruncatedNormal(torch.distributions.Normal):
         self.eps = eps
 
     def sample(self, clip=None, noise=None):
-        """loc + scale x noise, the noise clipped to +-clip; `noise`: standard normal draws of loc's
-        shape (the agent draws them from its generator; torch's RNG when not given)."""
+        """loc + scale x noise, the noise clipped to +-clip; `noise`: standard normal draws of
+        loc's shape (the agent's, from its generator; torch's RNG when not given)."""
         noise = (torch.randn_like(self.loc) if noise is None else noise) * self.scale
         if clip is not None:
             noise = noise.clamp(-clip, clip)
@@ -174,8 +169,9 @@ class Actor(nn.Module):
         self.apply(weight_init)
 
     def forward(self, latent, std):
+        """The policy at std: a float, or an update's float64 0-d tensor (rounded to float32 as a
+        float would be)."""
         mu = torch.tanh(self.policy(self.trunk(latent)))
-        # std: a float, or a 0-d float64 tensor (an update's), rounded to float32 as a float would be
         std = torch.full_like(mu, std) if isinstance(std, float) else std.float().expand_as(mu)
         return TruncatedNormal(mu, std)
 
@@ -197,11 +193,7 @@ class Critic(nn.Module):
 
 # ================================================================================================
 # 3. Augmentation
-# ================================================================================================
-PAD = 4  # DrQ's random shift: up to 4 pixels each way
-
-
-def random_shift(x: torch.Tensor, shift: torch.Tensor | None = None, pad: int = PAD):
+def random_shift(x: torch.Tensor, shift: torch.Tensor | None = None, pad: int = 4):
     """DrQ's random shift: replicate-pad by `pad`, then crop back with a per-sample integer shift
     (n, 1, 1, 2) in [0, 2 pad], done as a bilinear grid sample (DrQ-v2's RandomShiftsAug, its
     arithmetic). Integer shifts land on pixel centres (to float32 rounding): a 0/1 mask stays 0/1."""
@@ -211,7 +203,7 @@ def random_shift(x: torch.Tensor, shift: torch.Tensor | None = None, pad: int = 
     eps = 1.0 / (h + 2 * pad)
     arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device, dtype=x.dtype)[:h]
     arange = arange.unsqueeze(0).expand(h, h).unsqueeze(2)
-    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0)  # for every sample
+    base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0)
     if shift is None:
         shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device, dtype=x.dtype)
     grid = base_grid + shift.to(x.dtype) * (2.0 / (h + 2 * pad))
@@ -227,11 +219,10 @@ def shift_together(obs: torch.Tensor, mask: torch.Tensor, shift: torch.Tensor | 
 
 # ================================================================================================
 # 4. Auxiliary losses: one seam for SEAR and every baseline
-# ================================================================================================
 def summed_mse(pred, target, weight=None):
-    """Squared error summed over channels and pixels, averaged over the batch (Eq. 5). c1 is
-    relative to this sum, not to a per-pixel mean."""
-    err = (pred.float() - target) ** 2  # fp32 even when the decoder ran in bf16
+    """Squared error summed over channels and pixels, averaged over the batch (Eq. 5), in fp32 (a
+    decoder may run in bf16). c1 is relative to this sum, not to a per-pixel mean."""
+    err = (pred.float() - target) ** 2
     if weight is not None:
         err = err * weight
     return err.flatten(1).sum(1).mean()
@@ -239,7 +230,7 @@ def summed_mse(pred, target, weight=None):
 
 def reconstruction_loss(pred, obs, weight=None):
     """Eq. 5 on the [-0.5, 0.5]-normalised image, the prediction clamped to that range first (the
-    authors' sear.py, drqv2AE.py): no gradient pushes a pixel already past black or white further."""
+    authors' code): no gradient pushes a pixel already past black or white further."""
     return summed_mse(pred.float().clamp(-0.5, 0.5), normalise(obs), weight)
 
 
@@ -250,31 +241,31 @@ def summed_bce(logits, target):
 
 
 class AuxLoss(nn.Module):
-    """The seam: sees the latent of the augmented observation (which the critic reads too) and the
-    augmented image and mask (same shift); by keyword `encoder`, the un-augmented `obs`, the `batch`
-    and the agent's generator `rng` (for draws of its own). Returns its weighted term of Eq. 6 and its
-    unweighted terms for the logs. Its parameters join the encoder's and critic's optimiser. METHODS
-    builds it: build(cfg, encoder, critic)."""
+    """The seam: forward() takes the latent of the augmented obs (the critic's), the augmented image
+    and mask (same shift) and by keyword `encoder`, the raw `obs`, the `batch`, the agent's `rng`;
+    returns its weighted term of Eq. 6 and its log terms. decode(): the decoders' output ("mask"
+    logits, "recon" image) for evaluation; after_update(): a step of its own (CURL's)."""
     metric_names: tuple[str, ...] = ()
-    decodes: tuple[str, ...] = ()  # what decode() returns: "mask" (logits), "recon" (normalised image)
+    decodes: tuple[str, ...] = ()
 
     @classmethod
-    def build(cls, cfg, encoder, critic):  # METHODS' constructor; SEAR's own takes plain arguments
+    def build(cls, cfg, encoder, critic):
         return cls(cfg, encoder, critic)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
         return latent.new_zeros(()), {}
 
-    def decode(self, latent) -> dict:  # what the decoders make of a latent: evaluation metrics, videos
+    def decode(self, latent) -> dict:
         return {}
 
-    def after_update(self, obs, rng) -> dict:  # a step of its own after each update (CURL's): log terms
+    def after_update(self, obs, rng) -> dict:
         return {}
 
 
 class SearAux(AuxLoss):
     """SEAR: z_R -> robot mask (Eq. 4), z -> image (Eq. 5), weighted c1 and c2 (Eq. 6). As in the
-    authors' code, the FIRST half of the latent is z (reconstruction), the SECOND z_R (mask)."""
+    authors' code, the FIRST half of the latent is z (reconstruction), the SECOND z_R (mask);
+    without the split (the ablation) both decoders read the whole latent."""
     metric_names = ("recon_loss", "mask_loss")
     decodes = ("mask", "recon")
     split = True
@@ -290,13 +281,13 @@ class SearAux(AuxLoss):
     def build(cls, cfg, encoder, critic):
         return cls(encoder.repr_dim, cfg.frame_stack, cfg.recon_coef, cfg.mask_coef)
 
-    def decoder_inputs(self, latent):  # (z, z_R): the two halves, or without the split the whole twice
+    def decoder_inputs(self, latent):
         return latent.chunk(2, dim=1) if self.split else (latent, latent)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
         z, z_r = self.decoder_inputs(latent)
-        recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)  # Eq. 5
-        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)  # Eq. 4
+        recon_loss = reconstruction_loss(self.recon_decoder(z), obs_aug)
+        mask_loss = summed_bce(self.mask_decoder(z_r), mask_aug)
         terms = {"recon_loss": recon_loss.detach(), "mask_loss": mask_loss.detach()}
         return self.c1 * recon_loss + self.c2 * mask_loss, terms
 
@@ -307,11 +298,12 @@ class SearAux(AuxLoss):
 
 @dataclass(frozen=True)
 class Method:
+    """A row of the methods table: its auxiliary loss (None: the critic alone trains the encoder),
+    its encoder (SEAR's "pooled", DrQ-v2's "drq"), whether it reads masks (else none is rendered)."""
     doc: str
-    aux: type[AuxLoss] | None = None  # aux.build(cfg, encoder, critic); None: the critic alone trains it
-    encoder: str = "pooled"           # "pooled" (SEAR's) or "drq" (DrQ-v2's, flattened)
-    mask_input: bool = False          # DrQ-RGBM: the mask is a 4th channel of every stacked frame
-    uses_mask: bool = False           # False: the env skips the segmentation render (a second pass)
+    aux: type[AuxLoss] | None = None
+    encoder: str = "pooled"
+    uses_mask: bool = False
 
 
 # The methods of this file; train.py adds the baselines' (methods/baselines.py) and Ego-Foresight's.
@@ -323,24 +315,25 @@ METHODS = {
 
 # ================================================================================================
 # 5. Agent
-# ================================================================================================
 class Batch(NamedTuple):
-    """n-step transitions, as the replay buffer samples them and the update takes them (tensors)."""
-    obs: torch.Tensor        # (B, 3 x stack, H, W) RGB frames, uint8
-    mask: torch.Tensor       # (B, stack, H, W) the robot's masks, 0/1
-    action: torch.Tensor     # (B, A) the action taken at obs
-    reward: torch.Tensor     # (B, 1) the n-step return R
-    discount: torch.Tensor   # (B, 1) gamma^m of the bootstrap, 0 after a termination
-    next_obs: torch.Tensor   # the observation m <= n steps later
+    """n-step transitions: obs (B, 3 x stack, H, W) uint8, its masks (B, stack, H, W) 0/1, the action
+    at obs, the n-step return, the bootstrap's gamma^m (0 after a termination), the obs m steps on."""
+    obs: torch.Tensor
+    mask: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    discount: torch.Tensor
+    next_obs: torch.Tensor
     next_mask: torch.Tensor
 
 
 class Noise(NamedTuple):
-    """Every random number of one update, in DrQ-v2's order of drawing them (Agent.draw)."""
-    shift: torch.Tensor       # (B, 1, 1, 2) the random shift of obs (and of its masks)
-    next_shift: torch.Tensor  # (B, 1, 1, 2) of next_obs
-    target: torch.Tensor      # (B, A) standard normal: the exploration noise of the target's action
-    actor: torch.Tensor       # (B, A) of the action the actor's loss scores
+    """An update's random numbers in DrQ-v2's order (Agent.draw): the shifts of obs (and its masks)
+    and of next_obs, the standard normal noise of the target's action and of the actor's."""
+    shift: torch.Tensor
+    next_shift: torch.Tensor
+    target: torch.Tensor
+    actor: torch.Tensor
 
 
 def linear_std(cfg: Config, step):
@@ -352,9 +345,9 @@ def linear_std(cfg: Config, step):
 
 
 def actor_metrics(actor_loss, mu) -> dict:
-    """Short DDPG runs' failure, made visible: actor_saturated, the share of mean actions at exactly
-    +-1 in float32 (no gradient brings them back); action_spread, their std over the batch."""
-    return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).mean(dtype=torch.float32),
+    """Short DDPG runs' failure, made visible: the share of mean actions at exactly +-1 (no gradient
+    brings them back), and their std over the batch."""
+    return {"actor_loss": actor_loss.detach(), "actor_saturated": (mu.abs() == 1.0).float().mean(),
             "action_spread": mu.std(0, correction=0).mean()}
 
 
@@ -367,15 +360,14 @@ def polyak(net: nn.Module, target: nn.Module, tau: float):
 
 class Agent:
     """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). A variant
-    overrides `act`, `std`, `next_value`, `joint_loss` or `update` (methods/drm.py, foresight.py)."""
+    overrides `act`, `std`, `next_value`, `joint_loss`, `critic_objective` or `update` (methods/)."""
+    frame_channels = 3
 
     def __init__(self, cfg: Config, action_dim: int, device, method: Method | None = None):
         self.cfg, self.device, self.action_dim = cfg, torch.device(device), action_dim
         self.method = method or METHODS[cfg.method]
-        in_channels = (4 if self.method.mask_input else 3) * cfg.frame_stack
-        # The convolutions (encoder, decoders) hold >90% of an update's FLOPs: NHWC ("channels_last"),
-        # the layout of oneDNN's and cuDNN's fastest kernels; under --precision bf16 they alone run in
-        # bf16 (a TD target in bf16 would be off by up to 0.5 at Q = 100).
+        in_channels = self.frame_channels * cfg.frame_stack
+        # The convolutions (>90% of the FLOPs) in NHWC, oneDNN's and cuDNN's fastest layout.
         nhwc = dict(device=self.device, memory_format=torch.channels_last)
         pooled = self.method.encoder == "pooled"
         encoder = PooledEncoder(in_channels, cfg.latent_dim) if pooled else DrQEncoder(in_channels)
@@ -386,97 +378,80 @@ class Agent:
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         aux = self.method.aux
         self.aux = aux.build(cfg, self.encoder, self.critic).to(**nhwc) if aux else None
-        # Eq. 6 is one loss over encoder, critic and decoders; Adam is per-parameter, so one optimiser
-        # for all of them equals DrQ-v2's separate ones. fused: one kernel, and no host sync.
+        # Eq. 6 is one loss; Adam is per-parameter: one optimiser equals DrQ-v2's separate ones.
+        # fused: one kernel, and no host sync.
         model_params = [*self.encoder.parameters(), *self.critic.parameters()]
         if self.aux is not None:
             model_params += [p for p in self.aux.parameters() if p.requires_grad]
         self.model_opt = torch.optim.Adam(model_params, lr=cfg.lr, fused=True)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr, fused=True)
-        # The agent's random numbers (acting, shifts, noise) continue torch's stream where building
-        # the networks left it (seeded by torch.manual_seed(seed) before), in a generator of its own:
-        # a seed draws the same numbers alone or beside other seeds in one process.
+        # Its random numbers continue torch's stream from where building the networks left it, in
+        # a generator of its own: a seed draws the same numbers alone or beside other seeds.
         cuda = self.device.type == "cuda"
         state = torch.cuda.get_rng_state(self.device) if cuda else torch.get_rng_state()
         self.rng = torch.Generator(self.device).set_state(state)
         self.metric_names = ("critic_loss", "actor_loss", "q", "actor_saturated", "action_spread",
                              "expl_std") + (self.aux.metric_names if self.aux else ())
 
-    def std(self, step):  # the exploration std at this agent step: DrQ-v2's linear schedule
+    def std(self, step):
+        """The exploration std at this agent step: DrQ-v2's linear schedule."""
         return linear_std(self.cfg, step)
 
-    def conv_precision(self):  # bf16 autocast for the convolutional networks under --precision bf16
-        bf16 = self.cfg.precision == "bf16"
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=bf16)
-
     def encode(self, obs):
-        with self.conv_precision():
-            return self.encoder(obs).float()
-
-    def encoder_input(self, pixels: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-        """The encoder's input: the RGB stack, or for RGBM each frame's RGB followed by its mask."""
-        if not self.method.mask_input:
-            return pixels
-        if mask is None:
-            raise ValueError("method rgbm needs the robot mask when acting: pass mask=obs['mask']")
-        n, c, h, w = pixels.shape
-        rgb = pixels.view(n, c // 3, 3, h, w)
-        m = (mask.to(pixels.dtype) * 255.0).view(n, c // 3, 1, h, w)
-        return torch.cat([rgb, m], dim=2).view(n, -1, h, w)
+        return self.encoder(obs)
 
     @torch.no_grad()
     def act(self, obs, mask, step: int, eval_mode: bool) -> torch.Tensor:
-        """The action at one observation (the RGB stack, C x H x W, an array or a tensor; its masks,
-        read by rgbm only), a tensor on the device: the actor's mean in evaluation; in training its
-        sample with exploration noise, uniform for the first --exploration-steps agent steps."""
+        """The action at one observation (the RGB stack C x H x W, array or tensor; its masks, read
+        by DrQ-RGBM alone), on the device: the actor's mean in evaluation; in training a sample with
+        exploration noise, uniform for the first --exploration-steps agent steps."""
         obs = torch.as_tensor(obs, device=self.device).float()[None]
-        if mask is not None and self.method.mask_input:
-            mask = torch.as_tensor(mask, device=self.device).float()[None]
-        dist = self.actor(self.encode(self.encoder_input(obs, mask)), self.std(step))
+        dist = self.actor(self.encode(obs), self.std(step))
         if eval_mode:
             return dist.mean[0]
-        action = dist.sample(noise=torch.randn(dist.loc.shape, device=self.device, generator=self.rng))
+        noise = torch.randn(dist.loc.shape, device=self.device, generator=self.rng)
+        action = dist.sample(noise=noise)
         if step < self.cfg.exploration_steps:
             action.uniform_(-1.0, 1.0, generator=self.rng)
         return action[0]
 
     def draw(self, n: int) -> Noise:
-        """The random numbers of an update on n samples, from the agent's generator, in the order
-        DrQ-v2 draws them: the update is then a function of its inputs, the same whether it runs as
-        written, compiled, as a CUDA graph or batched with other seeds (harness/speed.py)."""
-        shift = dict(size=(n, 1, 1, 2), device=self.device, dtype=torch.float32, generator=self.rng)
-        noise = dict(size=(n, self.action_dim), device=self.device, generator=self.rng)
-        high = 2 * PAD + 1
-        return Noise(torch.randint(0, high, **shift), torch.randint(0, high, **shift),
+        """The random numbers of an update on n samples, from the agent's generator, in DrQ-v2's
+        order: the update is then a function of its inputs, the same run as written, compiled, as
+        a CUDA graph or batched with other seeds (harness/speed.py)."""
+        rng, device = self.rng, self.device
+        shift = dict(size=(n, 1, 1, 2), device=device, dtype=torch.float32, generator=rng)
+        noise = dict(size=(n, self.action_dim), device=device, generator=rng)
+        return Noise(torch.randint(0, 9, **shift), torch.randint(0, 9, **shift),
                      torch.randn(**noise), torch.randn(**noise))
 
     def next_value(self, next_latent, std, noise):
-        """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target critic
-        at the actor's next action with exploration noise of this `std`."""
+        """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target
+        critic at the actor's next action with exploration noise of this `std`."""
         next_action = self.actor(next_latent, std).sample(clip=self.cfg.std_clip, noise=noise)
         return torch.min(*self.critic_target(next_latent, next_action))
 
     def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step, noise: Noise):
-        """Eq. 6, the critic's TD loss plus the auxiliary loss (SEAR: c1 recon + c2 mask), on
-        `latent`, the encoding of obs_aug (mask_aug: its masks, same shift); the loss, and the logs'
-        terms with expl_std."""
+        """Eq. 6 on `latent`, the encoding of obs_aug (mask_aug: its masks, same shift): the loss,
+        and the logs' terms with expl_std."""
         std = self.std(step)
         with torch.no_grad():
             next_latent = self.encode(random_shift(batch.next_obs, noise.next_shift))
-            target_q = batch.reward + batch.discount * self.next_value(next_latent, std, noise.target)
+            next_value = self.next_value(next_latent, std, noise.target)
+            target_q = batch.reward + batch.discount * next_value
         q1, q2 = self.critic(latent, batch.action)
         critic_loss = F.mse_loss(q1, target_q) + F.mse_loss(q2, target_q)
         metrics = {"critic_loss": critic_loss.detach(), "q": q1.mean().detach(), "expl_std": std}
         if self.aux is None:
             return critic_loss, metrics
-        with self.conv_precision():  # decoders (and MAE's second encoder pass) in bf16; losses fp32
-            aux_loss, terms = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs,
-                                       batch=batch, rng=self.rng)
-        return critic_loss + aux_loss, {**terms, **metrics}  # Eq. 6: L_critic + c1 L_recon + c2 L_mask
+        aux_loss, terms = self.aux(latent, obs_aug, mask_aug, encoder=self.encoder, obs=batch.obs,
+                                   batch=batch, rng=self.rng)
+        # Eq. 6: L = L_critic + c1 L_recon + c2 L_mask (aux_loss: SearAux's c1 and c2 terms)
+        return critic_loss + aux_loss, {**terms, **metrics}
 
     def critic_objective(self, batch: Batch, step, noise: Noise):
         """Eq. 6 on a batch: the loss, its terms for the logs, the latent of the augmented obs."""
-        if batch.mask is None:  # a method that reads no mask
+        if batch.mask is None:
             obs_aug, mask_aug = random_shift(batch.obs, noise.shift), None
         else:
             obs_aug, mask_aug = shift_together(batch.obs, batch.mask, noise.shift)
@@ -492,14 +467,14 @@ class Agent:
         return latent.detach(), metrics
 
     def actor_loss(self, latent, std, noise):
-        """DDPG's loss, -min(Q1, Q2) of the actor's noisy action; and the mean action, for the logs."""
+        """DDPG's loss, -min(Q1, Q2) of the actor's noisy action; the mean action, for the logs."""
         dist = self.actor(latent, std)
         action = dist.sample(clip=self.cfg.std_clip, noise=noise)
         return -torch.min(*self.critic(latent, action)).mean(), dist.mean.detach()
 
     def update_actor(self, latent, std, noise):
-        """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this loss
-        trains no encoder; nor the critic, whose gradient is not even computed (`inputs`)."""
+        """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
+        loss trains no encoder; nor the critic, whose gradient is not even computed (`inputs`)."""
         actor_loss, mu = self.actor_loss(latent, std, noise)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward(inputs=list(self.actor.parameters()))
@@ -509,23 +484,22 @@ class Agent:
     def update(self, batch: Batch, step: int) -> dict:
         """One update on a replay batch (arrays or tensors, on any device) at agent step `step`.
         Returns its metrics as 0-d tensors on the device: read them when a log line is written."""
-        make = type(batch)._make if hasattr(batch, "_make") else Batch._make  # EF's Window too
+        make = type(batch)._make if hasattr(batch, "_make") else Batch._make
         batch = make(None if x is None else torch.as_tensor(x, device=self.device) for x in batch)
-        if not self.method.uses_mask:  # neither shifted nor read
+        if not self.method.uses_mask:
             batch = batch._replace(mask=None, next_mask=None)
         step = torch.full((), step, dtype=torch.float64, device=self.device)
         return self.learn(batch, step, self.draw(len(batch.obs)))
 
     def learn(self, batch: Batch, step: torch.Tensor, noise: Noise) -> dict:
-        """The update, tensors in and out: the joint step of Eq. 6, the actor's, Polyak averaging,
-        a method's own step (CURL's). `step`: the agent step, a float64 0-d tensor."""
+        """The update, tensors in and out: the joint step of Eq. 6, the actor's (at the std the
+        critic's target used), Polyak averaging, a method's own step (CURL's, last as in
+        curl_sac.py). `step`: the agent step, a float64 0-d tensor."""
         batch = type(batch)._make(None if x is None else x.float() for x in batch)
-        batch = batch._replace(obs=self.encoder_input(batch.obs, batch.mask),
-                               next_obs=self.encoder_input(batch.next_obs, batch.next_mask))
         latent, metrics = self.update_critic(batch, step, noise)
-        metrics.update(self.update_actor(latent, metrics["expl_std"], noise.actor))  # the same std
+        metrics.update(self.update_actor(latent, metrics["expl_std"], noise.actor))
         polyak(self.critic, self.critic_target, self.cfg.critic_tau)
-        if self.aux is not None:  # CURL's own step, last as in curl_sac.py
+        if self.aux is not None:
             metrics.update(self.aux.after_update(batch.obs, self.rng))
         return metrics
 
@@ -539,41 +513,36 @@ class Agent:
     def load_state_dict(self, state):
         for name in (name for name in self.PARTS if getattr(self, name) is not None):
             getattr(self, name).load_state_dict(state[name])
-        if "rng" in state:  # older snapshots kept torch's global stream instead: the loop sets it
+        if "rng" in state:
             self.rng.set_state(state["rng"])
 
 
 # ================================================================================================
 # 6. Replay buffer
-# ================================================================================================
 class ReplayBuffer:
-    """A ring of time steps in tensors on `device` (the host; harness/speed.py may put it on the
-    run's GPU). Slot i holds the newest RGB frame of step i (uint8, stored once), its robot mask
-    bit-packed (np.packbits: 882 bytes for 84x84), the action and reward that led to it, whether it
-    is terminal, whether it starts an episode. Frame stacks (never across an episode start: the
-    first frame repeats, as at reset), unpacked masks and n-step returns are built at sampling. A
-    time-limit end bootstraps; a termination does not. Draws follow DrQ-v2's loader (replay_buffer.py
-    _sample): an episode uniformly among the finished ones whole in the ring, then a start whose
-    n-step window lies in it; the index and the draws stay on the host (numpy)."""
+    """A ring of time steps on `device`: step t's newest frame, its mask bit-packed (882 bytes at
+    84x84), the action and reward that led to it, whether it is terminal, whether it starts an
+    episode. Frame stacks (the first frame repeats at an episode start), masks and n-step returns
+    are built at sampling; a time limit's end bootstraps, a termination does not. Draws follow
+    DrQ-v2's loader: an episode uniformly among the finished ones, then a start inside it."""
+
+    ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
 
     def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu"):
         self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
-        self.frame_shape, self.device = tuple(frame_shape), torch.device(device)  # (3, H, W)
+        self.frame_shape, self.device = tuple(frame_shape), torch.device(device)
         h, w = frame_shape[1:]
-        self.mask_bytes = (h * w + 7) // 8
         ring = dict(device=self.device)
         self.frames = torch.empty((capacity, *frame_shape), dtype=torch.uint8, **ring)
-        self.masks = torch.empty((capacity, self.mask_bytes), dtype=torch.uint8, **ring)
+        self.masks = torch.empty((capacity, (h * w + 7) // 8), dtype=torch.uint8, **ring)
         self.actions = torch.empty((capacity, action_dim), dtype=torch.float32, **ring)
         self.rewards = torch.empty((capacity,), dtype=torch.float32, **ring)
         self.terminal = torch.empty((capacity,), dtype=torch.bool, **ring)
         self.first = torch.empty((capacity,), dtype=torch.bool, **ring)
-        self.t = 0  # slots ever written; slot of time step t is t % capacity
-        self.episodes = np.zeros((0, 2), np.int64)  # (first time, steps) of the drawable episodes
-        self.running = -1  # first time of the running episode
-        self.bits = torch.arange(7, -1, -1, dtype=torch.uint8, device=self.device)  # packbits' order
-
-    ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
+        # t: slots ever written (step t is in slot t % capacity); episodes: (first time, steps)
+        # of the finished, drawable ones; running: the first time of the one under way.
+        self.t, self.episodes, self.running = 0, np.zeros((0, 2), np.int64), -1
+        self.bits = torch.arange(7, -1, -1, dtype=torch.uint8, device=self.device)
 
     @property
     def bytes_per_transition(self):
@@ -595,7 +564,7 @@ class ReplayBuffer:
         """The observation returned by reset(): the episode before it is finished, drawn from now
         on if an n-step window fits in it (DrQ-v2's loader fails on a shorter one)."""
         if self.t - 1 - self.running >= self.nstep:
-            kept = self.episodes[self.episodes[:, 0] >= self.t - self.capacity]  # still whole
+            kept = self.episodes[self.episodes[:, 0] >= self.t - self.capacity]
             self.episodes = np.append(kept, [[self.running, self.t - 1 - self.running]], axis=0)
         self.running = self.t
         self._write(obs, 0.0, 0.0, False, True)
@@ -604,19 +573,6 @@ class ReplayBuffer:
         """One env.step(): the action taken, the reward it earned, the observation it led to."""
         self._write(obs, action, reward, terminated, False)
 
-    def load_arrays(self, arrays) -> None:
-        """A saved ring back (a wrapped one in the same slots), the episode index from `first`."""
-        n = len(arrays["rewards"])
-        for a in self.ARRAYS:
-            getattr(self, a)[:n] = torch.from_numpy(np.asarray(arrays[a]))
-        self.t = int(arrays["t"])
-        lo = max(0, self.t - self.capacity)
-        firsts = lo + np.flatnonzero(self.first[:n].cpu().numpy()[np.arange(lo, self.t) % self.capacity])
-        steps = np.diff(firsts) - 1
-        self.episodes = np.stack([firsts[:-1], steps], axis=1)[steps >= self.nstep]
-        self.running = firsts[-1] if len(firsts) else -1
-
-    # --- sampling ---
     def drawable(self, lo):
         """(first time, steps) of the finished episodes that start at time lo or later."""
         return self.episodes[np.searchsorted(self.episodes[:, 0], lo):]
@@ -625,43 +581,45 @@ class ReplayBuffer:
         return len(self.drawable(max(0, self.t - self.capacity + margin))) > 0
 
     def sample(self, batch_size, rng: np.random.Generator, margin=0) -> Batch | None:
-        """A batch of transitions drawn with `rng`, or None while no episode can be drawn. margin:
-        the oldest slots kept out of the draws (a sampler thread reads while the loop writes them)."""
+        """A batch drawn with `rng`, or None while no episode can be drawn. margin: the oldest
+        slots kept out of the draws (a sampler thread reads while the loop writes them)."""
         lo = max(0, self.t - self.capacity + margin)
-        return self.batch(self.draw_starts(batch_size, rng, lo), rng) if len(self.drawable(lo)) else None
+        if not len(self.drawable(lo)):
+            return None
+        return self.batch(self.draw_starts(batch_size, rng, lo), rng)
 
-    def batch(self, times, rng: np.random.Generator):  # the batch of these starts (EF's adds windows)
+    def batch(self, times, rng: np.random.Generator):
+        """The batch of these start times (Ego-Foresight's replay adds its windows)."""
         return self.transitions(times)
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
-        """n start times: an episode uniformly among those drawable from lo, then a start from which
-        all n steps lie inside it (DrQ-v2's idx range: an episode's last n-1 steps start none)."""
+        """n start times: an episode uniformly among those drawable from lo, then a start from
+        which all n steps lie inside it (an episode's last n-1 steps start none, as DrQ-v2's)."""
         first, steps = self.drawable(lo).T
         e = rng.integers(len(first), size=n)
         return first[e] + rng.integers(0, steps[e] - self.nstep + 1)
 
     def stacked(self, times):
-        """The frame stacks and mask stacks at `times` (a device tensor): walk back from each time,
-        never past an episode start (the frame there repeats instead), oldest frame first."""
+        """The frame and mask stacks at `times` (a device tensor): walk back from each time, never
+        past an episode start (the frame there repeats instead), oldest frame first."""
         idx = [times]
         for _ in range(self.stack - 1):
             idx.append(torch.where(self.first[idx[-1] % self.capacity], idx[-1], idx[-1] - 1))
-        idx = torch.stack(idx[::-1], dim=1) % self.capacity  # (B, stack)
+        idx = torch.stack(idx[::-1], dim=1) % self.capacity
         b, (h, w) = len(times), self.frame_shape[1:]
         pixels = self.frames[idx].view(b, -1, h, w)
-        bits = (self.masks[idx].unsqueeze(-1) >> self.bits) & 1  # (B, stack, mask bytes, 8)
+        bits = (self.masks[idx].unsqueeze(-1) >> self.bits) & 1
         return pixels, bits.view(b, self.stack, -1)[..., :h * w].view(b, self.stack, h, w)
 
     def transitions(self, times) -> Batch:
         """The n-step transitions from `times` (each inside one episode): R = sum_k gamma^(k-1)
-        r_(t+k) and the bootstrap discount gamma^n, 0 if the episode terminated at t+n (float32,
-        in numpy's order)."""
+        r_(t+k) and the bootstrap's discount gamma^n, 0 if the episode terminated at t+n (only the
+        window's last step can end it), in float32 as numpy computes them."""
         times = torch.as_tensor(np.asarray(times, dtype=np.int64)).to(self.device, non_blocking=True)
         ret, gamma_n = torch.zeros(len(times), device=self.device), np.float32(1.0)
         for k in range(1, self.nstep + 1):
             ret += float(gamma_n) * self.rewards[(times + k) % self.capacity]
             gamma_n *= np.float32(self.discount)
-        # Only the window's last step can end the episode: no bootstrap after a termination there.
         last = self.terminal[(times + self.nstep) % self.capacity]
         discount = torch.where(last, 0.0, float(gamma_n))
         obs, mask = self.stacked(times)
@@ -670,8 +628,7 @@ class ReplayBuffer:
         return Batch(obs, mask, action, ret[:, None], discount[:, None], next_obs, next_mask)
 
 
-if __name__ == "__main__":  # the loop, the flags and the run harness stand on this file: train.py
+if __name__ == "__main__":
     import os
     import runpy
-    here = os.path.dirname(os.path.abspath(__file__))
-    runpy.run_path(os.path.join(here, "train.py"), run_name="__main__")
+    runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py"), run_name="__main__")

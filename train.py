@@ -48,7 +48,7 @@ class Config(sear.Config, baselines.BaselineConfig, foresight.ForesightConfig, d
 def make_agent(cfg: Config, action_dim: int, device: torch.device) -> Agent:
     """The run's agent: sear.Agent, Ego-Foresight's (foresight.ForesightAgent), and with --drm
     DrM's on top (drm.DrMAgent first in the order of the methods each overrides)."""
-    agent = foresight.ForesightAgent if cfg.method == "ef" else Agent
+    agent = {"ef": foresight.ForesightAgent, "rgbm": baselines.RGBMAgent}.get(cfg.method, Agent)
     if cfg.drm:
         both = (drm.DrMAgent, agent)
         agent = drm.DrMAgent if agent is Agent else type("DrM" + agent.__name__, both, {})
@@ -70,11 +70,12 @@ def seed_everything(seed):
 
 def act(agents: list[Agent], obs: dict, step: int, eval_mode: bool) -> np.ndarray:
     """Every seed's action (seed first): the seeds' observations cross to the device in one copy
-    (the masks only for a method that reads them), each seed's agent acts on its own, and the
-    actions come back in one read."""
+    (the masks only for DrQ-RGBM, whose encoder reads them), each seed's agent acts on its own,
+    and the actions come back in one read."""
     device = agents[0].device
     pixels = torch.as_tensor(obs["pixels"]).to(device)
-    masks = torch.as_tensor(obs["mask"]).to(device) if agents[0].method.mask_input else None
+    rgbm = isinstance(agents[0], baselines.RGBMAgent)
+    masks = torch.as_tensor(obs["mask"]).to(device) if rgbm else None
     actions = [a.act(pixels[i], None if masks is None else masks[i], step, eval_mode)
                for i, a in enumerate(agents)]
     return torch.stack(actions).cpu().numpy()

@@ -149,8 +149,7 @@ class EvalWatch:
         decoded = {}
         if self.decodes:
             latent = agent.encode(pixels)  # no random shift at evaluation
-            with agent.conv_precision():
-                decoded = agent.aux.decode(latent)
+            decoded = agent.aux.decode(latent)
         if "mask" in decoded:
             logits = decoded["mask"][:, -1].float()
             panels["predicted mask"] = torch.sigmoid(logits)

@@ -2,6 +2,7 @@
 one flag (docs/speed.md). sear.py's update, as written, is the plain path: the reference every device
 here equals (tests/test_speed.py), exactly where it can, else within rounding.
 
+  --precision bf16 the convolutional networks (encoder, decoders) under bf16 autocast
   --compile        Agent.learn through torch.compile (inductor's fused kernels)
   --cuda-graph     Agent.learn captured once as a CUDA graph and replayed: one launch per update
   --replay-device  the replay ring on the run's GPU: batches are built there, nothing crosses PCIe
@@ -36,6 +37,21 @@ def on(setting, device: torch.device) -> bool:
     return setting in ("on", True) or (setting == "auto" and device.type == "cuda")
 
 
+def bf16(agent) -> None:
+    """--precision bf16: the convolutional networks (encoder, decoders: >90% of an update's FLOPs)
+    under bf16 autocast, their outputs back in fp32; actor, critic and losses stay fp32 (a TD target
+    in bf16 would be off by up to 0.5 at Q = 100). Set on the agent's modules after it is built."""
+    def autocast(fn):
+        def run(*args, **kwargs):
+            with torch.autocast(agent.device.type, dtype=torch.bfloat16):
+                out = fn(*args, **kwargs)
+            return out.float() if torch.is_tensor(out) else out
+        return run
+    agent.encoder.forward = autocast(agent.encoder.forward)
+    if agent.aux is not None:
+        agent.aux.forward, agent.aux.decode = autocast(agent.aux.forward), autocast(agent.aux.decode)
+
+
 def speed_up(agent, run: cli.RunConfig, device: torch.device) -> list[str]:
     """One agent's update through the devices this run asks for (--compile, --cuda-graph), set on
     `agent`; a line for each that was asked for and cannot run for its method."""
@@ -62,6 +78,9 @@ class Learner:
     def __init__(self, agents: list, run: cli.RunConfig, device: torch.device):
         self.agents, self.batch = agents, None
         cfg = agents[0].cfg
+        if cfg.precision == "bf16":
+            for agent in agents:
+                bf16(agent)
         why = ("--drm" if cfg.drm else f"--method {cfg.method}"
                if cfg.method in (*DRAWS_INSIDE, "ef") else None)
         if len(agents) > 1 and on(run.batch_seeds, device) and why is None:
@@ -233,14 +252,13 @@ class SeedBatch:
         if not a.method.uses_mask:
             batch = batch._replace(mask=None, next_mask=None)
         batch = sear.Batch._make(None if x is None else x.float() for x in batch)
-        if a.method.mask_input:
-            batch = batch._replace(obs=torch.vmap(a.encoder_input)(batch.obs, batch.mask),
-                                   next_obs=torch.vmap(a.encoder_input)(batch.next_obs, batch.next_mask))
         noise = sear.Noise._make(torch.stack(xs) for xs in zip(*(x.draw(len(b.obs)) for x, b in
                                                                  zip(self.agents, batches))))
         step = torch.full((), step, dtype=torch.float64, device=self.device)
-        latent, metrics = self.step("model_opt", self.critic, batch, noise, step)
-        _, actor_metrics = self.step("actor_opt", self.actor, latent, metrics["expl_std"], noise.actor)
+        batch_dims = type(batch)._make(None if x is None else 0 for x in batch)
+        latent, metrics = self.step("model_opt", self.critic, (batch_dims, 0, None), batch, noise, step)
+        _, actor_metrics = self.step("actor_opt", self.actor, (0, 0, 0), latent, metrics["expl_std"],
+                                     noise.actor)
         with torch.no_grad():  # Polyak averaging of every seed's target critic at once
             for target, critic in self.pairs:
                 target.lerp_(critic, a.cfg.critic_tau)
@@ -253,22 +271,19 @@ class SeedBatch:
 
     def actor(self, params, latent, std, noise):
         loss, mu = self.objective(self.template.actor_loss)(params, latent, std, noise)
-        return loss, (None, sear.actor_metrics(loss, mu))
+        return loss, (loss.detach(), sear.actor_metrics(loss, mu))
 
-    def step(self, opt: str, fn, *args):
-        """One Adam step of `opt`'s stacks on fn's gradient, vmapped over the seeds: (aux, metrics)."""
+    def step(self, opt: str, fn, in_dims: tuple, *args):
+        """One Adam step of `opt`'s stacks on fn's gradient, vmapped over the seeds (`in_dims`: of
+        args); returns fn's (aux, metrics), seed first."""
         names = self.names[opt]
         trained = {n: self.params[n] for n in names}
         rest = {n: p.detach() for n, p in self.params.items() if n not in trained}
-        dims = [None if x is None else 0 for x in args[0]] if isinstance(args[0], tuple) else 0
-        in_dims = (0, type(args[0])._make(dims) if isinstance(args[0], tuple) else 0,
-                   *[0 if torch.is_tensor(x) and x.dim() and len(x) == len(self.agents) else None
-                     for x in args[1:]])
 
-        def objective(trained, *args):
+        def objective(trained, rest, *args):
             return fn({**trained, **rest}, *args)
         grads, (aux, metrics) = torch.func.vmap(torch.func.grad(objective, has_aux=True),
-                                                in_dims=in_dims)(trained, *args)
+                                                in_dims=(0, 0, *in_dims))(trained, rest, *args)
         for n in names:
             self.params[n].grad = grads[n]
         self.opts[opt].step()

@@ -156,12 +156,37 @@ class CURLAux(AuxLoss):
         self.opt.load_state_dict(state[1])
 
 
+def with_masks(pixels, mask):
+    """DrQ-RGBM's input: each stacked frame's RGB followed by its robot mask (0/1 x 255)."""
+    n, c, h, w = pixels.shape
+    rgb = pixels.view(n, c // 3, 3, h, w)
+    m = (mask.to(pixels.dtype) * 255.0).view(n, c // 3, 1, h, w)
+    return torch.cat([rgb, m], dim=2).view(n, -1, h, w)
+
+
+class RGBMAgent(sear.Agent):
+    """DrQ-RGBM: the encoder reads every frame's RGB and its robot mask, 4 channels a frame, when
+    acting and in the update (the mask shifted with its image)."""
+    frame_channels = 4
+
+    def act(self, obs, mask, step: int, eval_mode: bool):
+        if mask is None:
+            raise ValueError("method rgbm needs the robot mask when acting: pass mask=obs['mask']")
+        obs, mask = (torch.as_tensor(x, device=self.device).float()[None] for x in (obs, mask))
+        return super().act(with_masks(obs, mask)[0], None, step, eval_mode)
+
+    def critic_objective(self, batch, step, noise):
+        batch = batch._replace(obs=with_masks(batch.obs, batch.mask),
+                               next_obs=with_masks(batch.next_obs, batch.next_mask))
+        return super().critic_objective(batch, step, noise)
+
+
 # The baselines' rows of the methods table (train.py puts them beside sear.METHODS).
 METHODS = {
     "ae": Method("DrQ-AE: one decoder on the whole latent", aux=AEAux),
     "mae": Method("DrQ-MAE: reconstruct hidden patches", aux=MAEAux),
     "curl": Method("CURL: contrastive, momentum key", aux=CURLAux),
-    "rgbm": Method("DrQ-RGBM: mask appended to the input", encoder="drq", mask_input=True, uses_mask=True),
+    "rgbm": Method("DrQ-RGBM: mask appended to the input", encoder="drq", uses_mask=True),
     "sear-nosplit": Method("SEAR without latent split", aux=SearNoSplitAux, uses_mask=True),
     "dear": Method("DEAR: mask half + cosine term, no reconstruction", aux=DEARAux, uses_mask=True),
 }

@@ -63,20 +63,19 @@ class Ours:
     def update(self, batch, step, seed) -> dict:
         """One update on `batch` (numpy: obs, mask, action, reward, discount, next_obs, next_mask)
         at agent step `step`, its random draws from a generator seeded with `seed`; its losses."""
-        torch.manual_seed(seed)  # the update draws from torch's global generator
+        self.agent.rng.manual_seed(seed)  # the agent draws an update's numbers from its own generator
         metrics = self.agent.update(sear.Batch(*batch), step)
         return {k: float(metrics[k]) for k in LOSSES}
 
     def optimiser(self, params):
         """torch's Adam over `params` with our optimisers' settings (lr, and all torch.optim.Adam
-        takes: its `defaults`). Ours, sear.Adam, is torch.optim.Adam's arithmetic stepped on given
-        gradients; the reference keeps torch's own code, so that the exact case tests ours."""
+        takes: its `defaults`: fused)."""
         return torch.optim.Adam(params, **self.agent.model_opt.defaults)
 
     @staticmethod
     @torch.no_grad()
     def polyak(net, target, tau):  # as the reference's soft_update_params, in our arithmetic
-        torch._foreach_lerp_(list(target.parameters()), list(net.parameters()), tau)
+        sear.polyak(net, target, tau)
 
 
 @pytest.fixture(scope="module")
