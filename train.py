@@ -220,9 +220,9 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None, seeds=N
     with group.Runs(cfg, run, snapshot, seeds, group_dir) as runs:
         device = cli.torch_setup(run)
         envs = runs.closing(runenvs.SeedEnvs([cli.config_dict(d.cfg, d.run) for d in runs],
-                                             METHODS[cfg.method].uses_mask, workers=len(runs) > 1))
+                                             METHODS[cfg.method].uses_mask, workers=group.workers(runs)))
         source = experiment.init_source(cfg, run, envs.action_dim) if run.init_from and not snapshot else None
-        runs.create()
+        runs.create(f"envs in {envs.kind}; device {device}")
         agents, buffers, samplers, learner = build(runs, envs, run, device, source)
         lead, cfg, n = runs.dirs[0], runs.dirs[0].cfg, len(runs)
         stacks, ep = runenvs.Stacks(n, cfg.frame_stack, envs.frame_shape), np.zeros((n, 3))

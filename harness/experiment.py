@@ -332,12 +332,21 @@ def save_buffer(buffer, path):
 
 
 def load_buffer(buffer, path):
+    """buffer.npz back into `buffer` (sear.ReplayBuffer), its episode index rebuilt."""
     with np.load(path) as data:
         n = len(data["rewards"])
         if n > buffer.capacity:
             raise cli.ConfigError(f"saved buffer holds {n} transitions, more than --replay-size "
                                   f"{buffer.capacity}")
-        buffer.load_arrays(data)
+        for a in buffer.ARRAYS:
+            getattr(buffer, a)[:n] = torch.from_numpy(np.asarray(data[a]))
+        buffer.t = int(data["t"])
+    # the episode index, from the `first` flags of the slots held (a wrapped ring in the same slots)
+    lo = max(0, buffer.t - buffer.capacity)
+    firsts = lo + np.flatnonzero(buffer.first[:n].cpu().numpy()[np.arange(lo, buffer.t) % buffer.capacity])
+    steps = np.diff(firsts) - 1
+    buffer.episodes = np.stack([firsts[:-1], steps], axis=1)[steps >= buffer.nstep]
+    buffer.running = firsts[-1] if len(firsts) else -1
 
 
 def saved_buffer_t(path):

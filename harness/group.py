@@ -23,6 +23,7 @@ import numpy as np
 from harness import cli, experiment
 
 GROUP_FILE = "group.json"
+WORKERS = "SEAR_ENV_WORKERS"  # spawn (the default: worker processes) | serial (a group's envs in this process)
 # A seed's peak memory beside its envs (SEAR at batch 256: docs/speed.md) and its two env workers'
 PEAK_BYTES_PER_SEED = 2.7e9
 
@@ -71,6 +72,11 @@ def check_size(seeds: list[int]) -> None:
                               f"{(memory or 0) / 1e9:.0f} GB: about {PEAK_BYTES_PER_SEED / 1e9:.1f} GB and two "
                               f"env workers a seed hold at most {max(fits, 1)}); give fewer, or split them "
                               "across jobs (sweep.py --seeds-per-job)")
+
+
+def workers(runs) -> bool:
+    """Whether the seeds' envs run in worker processes: a group's do, unless $SEAR_ENV_WORKERS=serial."""
+    return len(runs) > 1 and os.environ.get(WORKERS, "spawn") != "serial"
 
 
 class Runs:
@@ -127,9 +133,9 @@ class Runs:
             d.__enter__()
         return self
 
-    def create(self):
+    def create(self, where: str):
         """Every new seed's run directory (in a new group's folder, with group.json), once the envs are made:
-        each seed's config with the suite's action repeat for 0."""
+        each seed's config with the suite's action repeat for 0. `where`: the envs and device, said."""
         import envs
         for d in self.dirs:
             d.cfg.action_repeat = d.cfg.action_repeat or envs.default_action_repeat(d.cfg.env)
@@ -148,6 +154,9 @@ class Runs:
             cli.write_atomically(os.path.join(self.group_dir, GROUP_FILE),
                                  lambda f: json.dump({"seeds": self.seeds, "runs": runs}, f, indent=2), mode="w")
             self.line = GroupLine(self.dirs)
+            cfg = self.dirs[0].cfg
+            print(f"group: {len(self)} seeds ({self.seeds[0]}..{self.seeds[-1]}) of {cli.method_label(cfg)} on "
+                  f"{cfg.env} in {self.group_dir}; {where}", flush=True)
 
     def start(self, agents, buffers, rngs) -> list:
         """Each seed's RunDir.start (a resumed seed restored); their counters."""
@@ -179,11 +188,20 @@ class Runs:
             self.line.show(self.dirs[0].frame)
 
     def show_eval(self, episode, t):
+        """The evaluation's progress: seed 0's run dir's line; a group's line as each episode ends."""
+        if self.line is not None and episode > self.line.eval_episode:
+            print(f"eval {episode}/{self.dirs[0].console.eval_episodes} done", flush=True)
+        if self.line is not None:
+            self.line.eval_episode = episode
         self.call(0, "show_eval", episode, t)
 
     def say_eval(self, episodes):
-        """The group's line of an evaluation: each seed's mean return."""
-        if self.line is not None and all(episodes):
+        """The group's lines at an evaluation's end: each seed's mean return."""
+        if self.line is not None:
+            if episodes[0]:
+                print(f"eval {len(episodes[0])}/{self.dirs[0].console.eval_episodes} done", flush=True)
+            self.line.eval_episode = 0
+        if self.line is not None and all(len(e) == self.dirs[0].console.eval_episodes for e in episodes):
             means = [np.mean([e.ret for e in mine]) for mine in episodes]
             print(f"eval @ frame {self.dirs[0].frame}: mean return over seeds {np.mean(means):.1f} (seeds: "
                   + ", ".join(f"{d.cfg.seed}: {r:.1f}" for d, r in zip(self.dirs, means)) + ")", flush=True)
@@ -254,7 +272,7 @@ class GroupLine:
     """The group's one progress line: frame, frames/s of all seeds together, the seeds' last returns."""
 
     def __init__(self, dirs):
-        self.dirs, self.returns = dirs, [float("nan")] * len(dirs)
+        self.dirs, self.returns, self.eval_episode = dirs, [float("nan")] * len(dirs), 0
         run = dirs[0].run
         self.start, self.start_frame, self.last = time.monotonic(), dirs[0].frame, 0.0
         self.every = min(run.log_every, 1.0) if sys.stdout.isatty() else run.log_every

@@ -249,21 +249,28 @@ class SeedEnvs:
 
     def __init__(self, configs: list[dict], uses_mask: bool, workers: bool):
         self.n, self.vectors = len(configs), {}
+        self.kind = f"{2 * self.n} worker processes, each seed's train and eval env" if workers else "this process"
         for split in ("train", "eval"):
             render = render_mask(types.SimpleNamespace(**configs[0]), split, uses_mask)
             fns = [functools.partial(newest_frame_env, c, split, render, workers) for c in configs]
-            if workers:
-                self.vectors[split] = gym.vector.AsyncVectorEnv(
-                    fns, context="spawn", autoreset_mode=gym.vector.AutoresetMode.DISABLED)
-            else:
-                self.vectors[split] = gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.DISABLED)
-        self.kind = (f"{2 * self.n} worker processes (each seed's train and eval env)" if workers
-                     else "this process")
+            self.vectors[split] = self.vector(fns, workers)
+            workers = workers and isinstance(self.vectors[split], gym.vector.AsyncVectorEnv)
         self.ended = {"train": np.ones(self.n, bool), "eval": np.ones(self.n, bool)}
         space = self.vectors["train"].single_observation_space
         self.action_dim = self.vectors["train"].single_action_space.shape[0]
         self.frame_shape = space["pixels"].shape
         self.tasks = self.vectors["eval"].get_attr("tasks")[0] if self.n else None
+
+    def vector(self, fns, workers: bool):
+        """A vector env of `fns`: in spawned workers, or (asked, or when they do not start) here."""
+        autoreset = gym.vector.AutoresetMode.DISABLED
+        if workers:
+            try:
+                return gym.vector.AsyncVectorEnv(fns, context="spawn", autoreset_mode=autoreset)
+            except Exception as e:  # noqa: BLE001 (any failure to start: the fallback runs, and says why)
+                print(f"envs: the worker processes did not start ({cli.first_sentence(e)}); stepping them here")
+                self.kind = "this process, one seed after another"
+        return gym.vector.SyncVectorEnv(fns, autoreset_mode=autoreset)
 
     def reset(self, split: str, which, seeds, options=None):
         """Envs `which` (a bool mask) reset with their reset seeds (seed first); returns the newest

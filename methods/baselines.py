@@ -139,8 +139,9 @@ class CURLAux(AuxLoss):
             for k, q in zip(self.key.parameters(), self.query[0].parameters()):
                 k.lerp_(q, weight)
             self.updates += 1
-        shifts = [torch.randint(0, 2 * sear.PAD + 1, (len(obs), 1, 1, 2), device=obs.device, dtype=obs.dtype,
-                                generator=rng) for _ in range(2)]  # the anchor's, then the positive's
+        # the anchor's shift, then the positive's: DrQ's shifts of up to 4 pixels
+        shifts = [torch.randint(0, 9, (len(obs), 1, 1, 2), device=obs.device, dtype=obs.dtype,
+                                generator=rng) for _ in range(2)]
         logits = self.query[0](random_shift(obs, shifts[0])) @ (self.W @ self.key(random_shift(obs, shifts[1])).T)
         loss = F.cross_entropy(logits - logits.max(1, keepdim=True).values, torch.arange(len(obs), device=obs.device))
         self.opt.zero_grad(set_to_none=True)
