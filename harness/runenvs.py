@@ -169,12 +169,9 @@ def check_finite(actions) -> None:
 # ================================================================================================
 def newest_frame_env(config: dict, split: str, render: bool, worker: bool):
     """One seed's env as a vector env holds it: envs.make_env's env with a stack of one, its mask
-    bit-packed (NewestFrame). In a worker process it first ignores SIGINT and SIGTERM and asks the
-    kernel to end it with its parent (Linux: prctl PR_SET_PDEATHSIG)."""
-    if worker and multiprocessing.parent_process() is not None:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        _die_with_parent()
+    bit-packed (NewestFrame)."""
+    if worker:
+        as_worker()
     cfg = types.SimpleNamespace(**config)
     mask_model = load_mask_model(cfg, quiet=True)
     env = make_run_env(cfg, split, render, mask_model, frame_stack=1)
@@ -184,7 +181,14 @@ def newest_frame_env(config: dict, split: str, render: bool, worker: bool):
     return NewestFrame(env)
 
 
-def _die_with_parent():
+def as_worker():
+    """In a worker process (not the parent, where AsyncVectorEnv builds one env to read the spaces):
+    SIGINT and SIGTERM ignored (the loop stops its workers) and, on Linux, an end with the parent
+    (prctl PR_SET_PDEATHSIG), so that a killed run leaves no worker and no traceback."""
+    if multiprocessing.parent_process() is None:
+        return
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
         import ctypes
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG = 1
@@ -247,12 +251,14 @@ class SeedEnvs:
     until every seed's episode has ended (each evaluation episode starts with a seeded reset).
     `kind` says where they run."""
 
-    def __init__(self, configs: list[dict], uses_mask: bool, workers: bool):
-        self.n, self.vectors = len(configs), {}
+    def __init__(self, configs: list[dict], uses_mask: bool, workers: bool, make=None):
+        """Each config's train and eval env; `make(config, split, render, worker)` builds one env of
+        a stack of one (newest_frame_env: envs.make_env's; a benchmark's stand-in)."""
+        self.n, self.vectors, make = len(configs), {}, make or newest_frame_env
         self.kind = f"{2 * self.n} worker processes, each seed's train and eval env" if workers else "this process"
         for split in ("train", "eval"):
             render = render_mask(types.SimpleNamespace(**configs[0]), split, uses_mask)
-            fns = [functools.partial(newest_frame_env, c, split, render, workers) for c in configs]
+            fns = [functools.partial(make, c, split, render, workers) for c in configs]
             self.vectors[split] = self.vector(fns, workers)
             workers = workers and isinstance(self.vectors[split], gym.vector.AsyncVectorEnv)
         self.ended = {"train": np.ones(self.n, bool), "eval": np.ones(self.n, bool)}
