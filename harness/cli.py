@@ -78,11 +78,11 @@ class RunConfig:
                                "first update compiles (minutes)", ("auto", "on", "off"),
                        resume_may_change=True)
     cuda_graph: str = arg("auto", "auto (on with CUDA) | on | off: the update captured once as a "
-                                  "CUDA graph and replayed (harness/speed.py)", ("auto", "on", "off"),
-                          resume_may_change=True)
-    batch_seeds: str = arg("auto", "auto (on with CUDA) | on | off: with --seeds, every seed's update "
-                                   "as one batched update (torch.func.vmap); off: one after another",
-                           ("auto", "on", "off"), resume_may_change=True)
+                                  "CUDA graph and replayed (harness/speed.py)",
+                          ("auto", "on", "off"), resume_may_change=True)
+    batch_seeds: str = arg("auto", "auto (on with CUDA) | on | off: with --seeds, every seed's "
+                                   "update as one batched update (torch.func.vmap); off: one after "
+                                   "another", ("auto", "on", "off"), resume_may_change=True)
     tf32: bool = arg(False, "CUDA: TF32 in float32 convolutions and matmuls (Ampere and newer: "
                             "faster, ~3 fewer significant digits); off: the reference arithmetic "
                             "(DrQ-v2's curves ran on V100s, which have none)", when="cuda",

@@ -1,6 +1,6 @@
-"""Every setting acts or is refused: its field's keys (acts=, envs=, when=; cli.scope) say where each flag
-acts; sear.py refuses a flag given anywhere else (or, with --drop-inapplicable, drops it), and the keys tell
-the truth."""
+"""Every setting acts or is refused: its field's keys (acts=, envs=, when=; cli.scope) say where
+each flag acts; sear.py refuses a flag given anywhere else (or, with --drop-inapplicable, drops it),
+and the keys tell the truth."""
 import contextlib
 import dataclasses
 import io
@@ -38,8 +38,9 @@ def typed(name, value) -> list[str]:
 
 
 def test_every_scope_names_methods_envs_and_conditions_that_exist():
-    """A field's acts= names --method values (or a set of cli.METHOD_SETS), envs= a set of cli.ENV_SETS,
-    when= a setting or one of cli.CONDITIONS; a field without them acts in every run."""
+    """A field's acts= names --method values (or a set of cli.METHOD_SETS), envs= a set of
+    cli.ENV_SETS, when= a setting or one of cli.CONDITIONS; a field without them acts in every
+    run."""
     for name, f in FIELDS.items():
         acts, envs_, when = (f.metadata.get(k) for k in ("acts", "envs", "when"))
         if isinstance(acts, str):
@@ -48,12 +49,13 @@ def test_every_scope_names_methods_envs_and_conditions_that_exist():
             assert {m.split()[0] for m in acts} <= set(train.METHODS), name
         assert envs_ is None or envs_ in cli.ENV_SETS, name
         assert when is None or when in cli.CONDITIONS or when in FIELDS, name
-    assert not set(cli.CONDITIONS) & set(FIELDS)  # when="drm" means --drm, never a condition of that name
+    assert not set(cli.CONDITIONS) & set(FIELDS)  # when="drm" means --drm, never a condition
 
 
 def test_the_method_lists_are_the_methods_table():
     assert set(cli.MASK_METHODS) == {m for m, row in train.METHODS.items() if row.uses_mask}
-    assert set(cli.POOLED_METHODS) == {m for m, row in train.METHODS.items() if row.encoder == "pooled"}
+    pooled = {m for m, row in train.METHODS.items() if row.encoder == "pooled"}
+    assert set(cli.POOLED_METHODS) == pooled
 
 
 def test_suite_of_reads_every_env_name_as_envs_does():
