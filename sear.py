@@ -21,40 +21,40 @@ import torch.nn.functional as F
 
 # ================================================================================================
 # 1. Config
-def arg(default, doc, choices=None):  # a config field, its one-line doc (--help), its values if a fixed set
-    return field(default=default, metadata={"doc": doc, "choices": choices})
+def arg(default, doc, choices=None, **keys):  # a field: doc (--help), fixed values, cli.py's keys
+    return field(default=default, metadata={"doc": doc, "choices": choices, **keys})
 
 
 @dataclass
 class Config:
-    """The algorithm's hyper-parameters (the paper's table). The experiment around them (env, budget,
-    evaluation, the baselines' and DrM's settings) is train.Config, which adds its fields to these."""
-    method: str = arg("sear", "a row of METHODS: sear, drq (baselines.py adds ae, mae, curl, rgbm, sear-nosplit, dear)")
-    precision: str = arg("fp32", "fp32 | bf16: the convolutional encoder and decoders under bf16 autocast; "
-                                 "actor, critic and losses stay fp32", ("fp32", "bf16"))
-    frame_stack: int = arg(3, "frames stacked into one observation")
+    """The algorithm's hyper-parameters (the paper's table); train.Config adds the experiment's."""
+    method: str = arg("sear", "a row of METHODS (sear, drq, ...)", group="what to run")
+    precision: str = arg("fp32", "fp32 | bf16: encoder and decoders under bf16 autocast (actor, "
+                                 "critic, losses: fp32)", ("fp32", "bf16"), group="the method")
+    frame_stack: int = arg(3, "frames stacked into one observation", above=0)
     # --- DrQ-v2 (paper hyper-parameter table) ---
-    replay_size: int = arg(250_000, "replay buffer capacity in transitions")
-    seed_frames: int = arg(4000, "frames collected before the first update (DrQ-v2's num_seed_frames)")
-    exploration_steps: int = arg(2000, "first agent steps of uniformly random actions (DrQ-v2's num_expl_steps); "
-                                       "then the actor plus noise acts, updated or not yet")
-    nstep: int = arg(3, "n of the n-step return")
-    batch_size: int = arg(256, "mini-batch size")
-    discount: float = arg(0.99, "discount factor gamma")
-    lr: float = arg(1e-4, "Adam learning rate of actor, critic, encoder and decoders")
-    update_every: int = arg(2, "agent steps between updates")
-    critic_tau: float = arg(0.01, "Polyak rate of the target critic")
-    feature_dim: int = arg(50, "actor/critic trunk width (Linear + LayerNorm + tanh)")
-    latent_dim: int = arg(4096, "encoder latent size (SEAR's pooled encoder), split in two halves")
-    hidden_dim: int = arg(1024, "actor and critic MLP width")
+    replay_size: int = arg(250_000, "replay capacity in transitions", above=0, group="budgets")
+    seed_frames: int = arg(4000, "frames before the first update (DrQ-v2's num_seed_frames)", low=0)
+    exploration_steps: int = arg(2000, "first agent steps: uniform actions (num_expl_steps)", low=0)
+    nstep: int = arg(3, "n of the n-step return", above=0)
+    batch_size: int = arg(256, "mini-batch size", above=0, group="budgets")
+    discount: float = arg(0.99, "discount factor gamma", low=0, high=1)
+    lr: float = arg(1e-4, "Adam learning rate of actor, critic, encoder and decoders", above=0)
+    update_every: int = arg(2, "agent steps between updates", above=0)
+    critic_tau: float = arg(0.01, "Polyak rate of the target critic", low=0, high=1)
+    feature_dim: int = arg(50, "actor/critic trunk width (Linear + LayerNorm + tanh)", above=0)
+    latent_dim: int = arg(4096, "latent size, split in two halves", above=0, acts="pooled")
+    hidden_dim: int = arg(1024, "actor and critic MLP width", above=0)
     std_start: float = arg(1.0, "exploration std at the start of the linear schedule")
-    std_end: float = arg(0.1, "exploration std at the end of the linear schedule")
-    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = steps x action "
-                                  "repeat)")
-    std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)")
-    # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same 4:1 ratio) ---
-    recon_coef: float = arg(0.01, "c1: weight of the reconstruction loss (mae too; ae uses 2 x c1, as the authors)")
-    mask_coef: float = arg(0.0025, "c2: weight of the mask loss")
+    std_end: float = arg(0.1, "exploration std at the end of the linear schedule", low=0)
+    std_steps: int = arg(500_000, "AGENT STEPS over which the std decays, as DrQ-v2 (frames = "
+                                  "steps x action repeat)", above=0, group="the method")
+    std_clip: float = arg(0.3, "clip of the exploration noise in the actor update (DrQ-v2)", low=0)
+    # --- SEAR, Eq. 6 (paper: c1 = 0.01, c2 = 0.0025; authors' code: 1.0 and 0.25, same ratio) ---
+    recon_coef: float = arg(0.01, "c1: reconstruction loss weight", low=0, group="the method",
+                            acts=("sear", "sear-nosplit", "ae (2 x c1)", "mae", "dear (cosine)"))
+    mask_coef: float = arg(0.0025, "c2: weight of the mask loss", low=0, group="the method",
+                           acts=("sear", "sear-nosplit", "dear"))
 
 
 # ================================================================================================

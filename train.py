@@ -34,15 +34,25 @@ class Config(sear.Config, baselines.BaselineConfig, foresight.ForesightConfig, d
     """The experiment: the task, its budget and its evaluation, on top of the algorithm's hyper-parameters
     (sear.Config), the baselines' and DrM's settings and the envs' (masks, distractors, rendering). One
     --flag each (the doc is its help). How a process runs it (device, files, snapshots) is cli.RunConfig."""
-    env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, metaworld-door-open)")
-    seed: int = arg(1, "seeds python, numpy, torch and the environments")
-    frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action repeat)")
-    action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen and Adroit)")
-    max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N agent steps")
-    eval_every: int = arg(10_000, "frames between evaluations (snapshots follow --snapshot-minutes)")
-    eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this many in all)")
-    eval_episodes_per_task: int = arg(0, "task sets (metaworld-mt*): evaluation episodes of every task; "
-                                         "0 = ceil(--eval-episodes / number of tasks)")
+    env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, "
+                                  "metaworld-door-open)", metavar="ENV", group="what to run")
+    seed: int = arg(1, "seeds python, numpy, torch and the environments", group="what to run",
+                    low=0, high=cli.MAX_SEED,
+                    why=f"numpy seeds below 2^32, and the eval env's is --seed + {cli.EVAL_SEED}")
+    frames: int = arg(1_000_000, "environment frames to train for (frames = agent steps x action "
+                                 "repeat)", above=0, group="what to run", resume_may_change=True)
+    action_repeat: int = arg(0, "0 = the suite's default (2 dm_control and Meta-World, 1 Kitchen "
+                                "and Adroit)", low=0)
+    max_episode_steps: int = arg(0, "0 = the suite's time limit; N > 0 truncates episodes after N "
+                                    "agent steps", low=0, group="budgets")
+    eval_every: int = arg(10_000, "frames between evaluations (snapshots follow "
+                                  "--snapshot-minutes)", above=0, group="budgets")
+    eval_episodes: int = arg(10, "episodes per evaluation, mean action (task sets: at least this "
+                                 "many in all)", above=0, when="episodes not per task",
+                             evaluate_may_set=True)
+    eval_episodes_per_task: int = arg(0, "task sets (metaworld-mt*): evaluation episodes of every "
+                                         "task; 0 = ceil(--eval-episodes / number of tasks)", low=0,
+                                      envs="task sets", group="the suites", evaluate_may_set=True)
 
 
 def make_agent(cfg: Config, action_dim: int, device: torch.device) -> Agent:

@@ -41,38 +41,45 @@ from harness.cli import arg, storing, torch_save, write_atomically
 class EnvConfig:
     """The envs' settings of sear.Config (which inherits them): masks, Distracting Control,
     rendering."""
-    mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background")
+    mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background",
+                            low=0, high=1, acts="mask", group="robot masks")
     mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian "
-                                   "blur (sigma 0.5), threshold 0.9 (envs.approximate_mask)")
+                                   "blur (sigma 0.5), threshold 0.9 (envs.approximate_mask)",
+                            acts="mask", group="robot masks")
     mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) "
-                                           "| stride (authors')",
-                               ("majority", "stride"))
+                                           "| stride (authors')", ("majority", "stride"),
+                               envs="manipulation", acts="mask", group="robot masks")
     mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a "
                                   "segment.py model applied to every frame gives every mask target "
                                   "and RGBM's input mask; --mask-noise / --mask-approx then "
-                                  "corrupt its masks)")
+                                  "corrupt its masks)", metavar="sim|learned:PATH", acts="mask",
+                           group="robot masks")
     learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's "
                                        "mask in evaluation episodes only to report the learned "
                                        "masks' IoU (eval.csv learned_mask_iou), never as a target; "
-                                       "--no-learned-mask-iou never renders one")
+                                       "--no-learned-mask-iou never renders one",
+                                 when="learned masks", acts="mask")
     backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py "
                                "--fetch-davis), a DAVIS or image folder, or '' = built-in "
-                               "procedural images (not the paper's)")
+                               "procedural images (not the paper's)", metavar="davis|DIR",
+                           envs="distracting", group="the suites")
     difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all "
-                                    "backgrounds (authors: medium)",
-                          ("easy", "medium", "hard"))
+                                    "backgrounds (authors: medium)", ("easy", "medium", "hard"),
+                          envs="distracting", group="the suites")
     render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no "
-                                       "multisampling)",
-                              ("paper", "fast"))
+                                       "multisampling)", ("paper", "fast"), group="the suites")
     pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, "
-                                     "under DrQ-v2's curves: 0.8% less about the hinge)", ("exact", "2021"))
+                                     "under DrQ-v2's curves: 0.8% less about the hinge)",
+                            ("exact", "2021"), envs="cartpole", group="the suites")
     camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset "
-                                         "scale (original: 0.1-0.3)")
+                                         "scale (original: 0.1-0.3)", low=0, high=1,
+                                    envs="distracting", group="the suites")
     color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift "
-                                        "(original: 0.1-0.3)")
+                                        "(original: 0.1-0.3)", low=0, high=1, envs="distracting",
+                                   group="the suites")
     kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their "
-                                       "6 views per episode)",
-                              ("fixed", "random"))
+                                       "6 views per episode)", ("fixed", "random"), envs="kitchen",
+                              group="the suites")
 
 
 # ================================================================================================

@@ -25,12 +25,17 @@ from sear import AuxLoss, Decoder, Method, SearAux, arg, random_shift, reconstru
 @dataclass
 class BaselineConfig:
     """The baselines' own settings (train.Config adds them to the run's flags); each default is its source's."""
-    ae_latent_lambda: float = arg(0.0, "ae: L2 penalty on the latent (authors' DrQ-AE: none; SAC-AE: 1e-6)")
-    mae_ratio: float = arg(0.75, "mae: fraction of patches hidden (MAE, He et al. 2022)")
-    mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)")
-    curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder, every 2nd update (CURL, Laskin et al. 2020)")
-    curl_lr: float = arg(1e-3, "curl: Adam learning rate of CURL's own step (curl_sac.py: encoder_lr)")
-    dear_feature: str = arg("pull", "dear: pull (1 - cos, its released code) | push (max(0, cos))", ("pull", "push"))
+    ae_latent_lambda: float = arg(0.0, "ae: L2 penalty on the latent (authors' DrQ-AE: none; "
+                                       "SAC-AE: 1e-6)", low=0, acts=("ae",))
+    mae_ratio: float = arg(0.75, "mae: fraction of patches hidden (MAE, He et al. 2022)", low=0,
+                           high=1, acts=("mae",))
+    mae_patch: int = arg(12, "mae: patch side in pixels (84 = 7 x 12)", above=0, acts=("mae",))
+    curl_tau: float = arg(0.05, "curl: EMA rate of the key encoder, every 2nd update (CURL, Laskin "
+                                "et al. 2020)", low=0, high=1, acts=("curl",))
+    curl_lr: float = arg(1e-3, "curl: Adam learning rate of CURL's own step (curl_sac.py: "
+                               "encoder_lr)", low=0, acts=("curl",), group="the method")
+    dear_feature: str = arg("pull", "dear: pull (1 - cos, its released code) | push (max(0, cos))",
+                            ("pull", "push"), acts=("dear",), group="the method")
 
 
 class SearNoSplitAux(SearAux):

@@ -38,25 +38,35 @@ METRICS = ("dormant_ratio", "drm_lambda", "value_loss", "perturb_factor")
 class DrMConfig:
     """DrM's flags (train.Config adds them to the run's). Defaults: the released code's cfgs/agent/drm.yaml, and
     for what it leaves to the task cfgs, the value of its dm_control tasks (cfgs/task/*.yaml)."""
-    drm: bool = arg(False, "DrM on top of --method (docs/drm.md): dormant-ratio-driven exploration std, "
-                           "expectile value blended into the critic's target, periodic shrink-and-perturb")
-    drm_dormant_threshold: float = arg(0.025, "DrM: a neuron is dormant when its mean |activation| over the batch "
-                                              "is below this fraction of its layer's mean (dormant_threshold)")
-    drm_target_ratio: float = arg(0.2, "DrM: target dormant ratio: the actor is awake once below it, and the "
-                                       "std's and lambda's sigmoids are centred on it (target_dormant_ratio)")
-    drm_dormant_temp: float = arg(10.0, "DrM: slope of the dormant std, sigmoid(temp x (ratio - target)) "
-                                        "(dormant_temp)")
-    drm_lambda: float = arg(0.6, "DrM: largest weight of the expectile value V(s') in the critic's target "
-                                 "(target_lambda; every dm_control task cfg: 0.6)")
-    drm_lambda_temp: float = arg(50.0, "DrM: slope of lambda = drm_lambda / (1 + exp(temp x (ratio - target))) "
-                                       "(lambda_temp)")
-    drm_perturb_every: int = arg(100_000, "DrM: AGENT STEPS between shrink-and-perturbs (dormant_perturb_interval); "
-                                          "an update step that is a multiple of it perturbs")
-    drm_min_perturb: float = arg(0.2, "DrM: smallest shrink factor (min_perturb_factor)")
-    drm_max_perturb: float = arg(1.0, "DrM: largest shrink factor (max_perturb_factor: 1.0 in the task cfgs of "
-                                      "medium tasks, 0.9 or 0.6 for some hard ones: cli.DRM_MAX_PERTURB)")
-    drm_perturb_rate: float = arg(2.0, "DrM: shrink factor = clip(1 - rate x ratio, min, max) (perturb_rate)")
-    drm_expectile: float = arg(0.9, "DrM: expectile of V's asymmetric squared loss on min(Q1, Q2) (expectile)")
+    drm: bool = arg(False, "DrM on top of --method (docs/drm.md): dormant-ratio-driven exploration "
+                           "std, expectile value blended into the critic's target, periodic "
+                           "shrink-and-perturb", group="what to run")
+    drm_dormant_threshold: float = arg(0.025, "DrM: a neuron is dormant when its mean |activation| "
+                                              "over the batch is below this fraction of its "
+                                              "layer's mean (dormant_threshold)", low=0, high=1,
+                                       when="drm")
+    drm_target_ratio: float = arg(0.2, "DrM: target dormant ratio: the actor is awake once below "
+                                       "it, and the std's and lambda's sigmoids are centred on it "
+                                       "(target_dormant_ratio)", low=0, high=1, when="drm")
+    drm_dormant_temp: float = arg(10.0, "DrM: slope of the dormant std, sigmoid(temp x (ratio - "
+                                        "target)) (dormant_temp)", low=0, when="drm")
+    drm_lambda: float = arg(0.6, "DrM: largest weight of the expectile value V(s') in the critic's "
+                                 "target (target_lambda; every dm_control task cfg: 0.6)", low=0,
+                            high=1, when="drm")
+    drm_lambda_temp: float = arg(50.0, "DrM: slope of lambda = drm_lambda / (1 + exp(temp x "
+                                       "(ratio - target))) (lambda_temp)", low=0, when="drm")
+    drm_perturb_every: int = arg(100_000, "DrM: AGENT STEPS between shrink-and-perturbs "
+                                          "(dormant_perturb_interval); an update step that is a "
+                                          "multiple of it perturbs", above=0, when="drm")
+    drm_min_perturb: float = arg(0.2, "DrM: smallest shrink factor (min_perturb_factor)", low=0,
+                                 high=1, when="drm")
+    drm_max_perturb: float = arg(1.0, "DrM: largest shrink factor (max_perturb_factor: 1.0 in the "
+                                      "task cfgs of medium tasks, 0.9 or 0.6 for some hard ones: "
+                                      "cli.DRM_MAX_PERTURB)", low=0, high=1, when="drm")
+    drm_perturb_rate: float = arg(2.0, "DrM: shrink factor = clip(1 - rate x ratio, min, max) "
+                                       "(perturb_rate)", low=0, when="drm")
+    drm_expectile: float = arg(0.9, "DrM: expectile of V's asymmetric squared loss on min(Q1, Q2) "
+                                    "(expectile)", low=0, high=1, when="drm")
 
 
 def dormant_ratio(actor: nn.Module, latent: torch.Tensor, threshold: float) -> torch.Tensor:

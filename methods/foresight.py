@@ -70,14 +70,16 @@ class WindowReplay(sear.ReplayBuffer):
 class ForesightConfig:
     """EF's flags (train.Config adds them to the run's). Defaults: the released cfgs/agent/drqv2ef.yaml; its
     hs_dim 2048 is --latent-dim (docs/foresight.md)."""
-    ef_agent_dim: int = arg(32, "ef: the latent's first N entries are the agent part the MLP rolls forward; the "
-                                "rest is the scene part (ha_dim)")
-    ef_horizon: int = arg(10, "ef: the most AGENT STEPS ahead EF predicts: each batch draws its own in 1..N "
-                              "(horizon)")
-    ef_coef: float = arg(1.0, "ef: weight of the foresight loss (summed over pixels) in the joint loss "
-                              "(rec_loss_weight)")
-    ef_babbling_steps: int = arg(12_500, "ef: first AGENT STEPS of training that babble: uniform actions in +-4, "
-                                         "clipped to +-1 (num_babbling_steps)")
+    ef_agent_dim: int = arg(32, "ef: the latent's first N entries are the agent part the MLP rolls "
+                                "forward; the rest is the scene part (ha_dim)", above=0,
+                            acts=("ef",))
+    ef_horizon: int = arg(10, "ef: the most AGENT STEPS ahead EF predicts: each batch draws its "
+                              "own in 1..N (horizon)", above=0, acts=("ef",))
+    ef_coef: float = arg(1.0, "ef: weight of the foresight loss (summed over pixels) in the joint "
+                              "loss (rec_loss_weight)", low=0, acts=("ef",))
+    ef_babbling_steps: int = arg(12_500, "ef: first AGENT STEPS of training that babble: uniform "
+                                         "actions in +-4, clipped to +-1 (num_babbling_steps)",
+                                 low=0, acts=("ef",))
 
 
 MLP_WIDTH = 512     # the release's mlp(ha_dim + A, [512, 512], ha_dim)

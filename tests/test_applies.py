@@ -1,5 +1,6 @@
-"""Every setting acts or is refused: cli.APPLIES says where each flag acts; sear.py refuses a flag given
-anywhere else (or, with --drop-inapplicable, drops it), and the table tells the truth."""
+"""Every setting acts or is refused: its field's keys (acts=, envs=, when=; cli.scope) say where
+each flag acts; sear.py refuses a flag given anywhere else (or, with --drop-inapplicable, drops it),
+and the keys tell the truth."""
 import contextlib
 import dataclasses
 import io
@@ -11,7 +12,6 @@ import torch
 
 from harness import cli
 import envs
-import sear
 import train
 
 # One env of every suite kind the table tells apart (cartpole: --pole-inertia).
@@ -27,7 +27,7 @@ def never_train(*args):
 
 def parse(argv):
     with contextlib.redirect_stdout(io.StringIO()):  # the recipe's line
-        return cli.parse_args(argv, train.Config, sear.METHODS)
+        return cli.parse_args(argv, train.Config, train.METHODS)
 
 
 def typed(name, value) -> list[str]:
@@ -37,14 +37,25 @@ def typed(name, value) -> list[str]:
     return [cli.flag(name), str(value)]
 
 
-def test_every_field_acts_everywhere_or_has_a_row():
-    assert set(cli.APPLIES) | cli.EVERYWHERE == set(FIELDS), "a new field goes in cli.APPLIES or cli.EVERYWHERE"
-    assert not set(cli.APPLIES) & cli.EVERYWHERE
+def test_every_scope_names_methods_envs_and_conditions_that_exist():
+    """A field's acts= names --method values (or a set of cli.METHOD_SETS), envs= a set of
+    cli.ENV_SETS, when= a setting or one of cli.CONDITIONS; a field without them acts in every
+    run."""
+    for name, f in FIELDS.items():
+        acts, envs_, when = (f.metadata.get(k) for k in ("acts", "envs", "when"))
+        if isinstance(acts, str):
+            assert acts in cli.METHOD_SETS, name
+        elif acts is not None:
+            assert {m.split()[0] for m in acts} <= set(train.METHODS), name
+        assert envs_ is None or envs_ in cli.ENV_SETS, name
+        assert when is None or when in cli.CONDITIONS or when in FIELDS, name
+    assert not set(cli.CONDITIONS) & set(FIELDS)  # when="drm" means --drm, never a condition
 
 
 def test_the_method_lists_are_the_methods_table():
-    assert set(cli.MASK_METHODS) == {m for m, row in sear.METHODS.items() if row.uses_mask}
-    assert set(cli.POOLED_METHODS) == {m for m, row in sear.METHODS.items() if row.encoder == "pooled"}
+    assert set(cli.MASK_METHODS) == {m for m, row in train.METHODS.items() if row.uses_mask}
+    pooled = {m for m, row in train.METHODS.items() if row.encoder == "pooled"}
+    assert set(cli.POOLED_METHODS) == pooled
 
 
 def test_suite_of_reads_every_env_name_as_envs_does():
@@ -55,14 +66,14 @@ def test_suite_of_reads_every_env_name_as_envs_does():
         assert cli.suite_of(name) == want, name
 
 
-CONTEXTS = [(method, env, False) for method in sear.METHODS for env in SUITE_ENVS] + \
-           [(method, "walker-walk", True) for method in sear.METHODS]
+CONTEXTS = [(method, env, False) for method in train.METHODS for env in SUITE_ENVS] + \
+           [(method, "walker-walk", True) for method in train.METHODS]
 
 
 @pytest.mark.parametrize("name", sorted(set(FIELDS) - {"resume", "evaluate", "init_from"}))
 def test_a_flag_given_where_it_does_nothing_is_refused_and_anywhere_else_taken(name, tmp_path, monkeypatch):
     """Every flag (at its default value, as a sweep passes it) x every method x every suite kind (and --drm):
-    one line naming the flag and where it acts exactly where APPLIES says it does nothing; with
+    one line naming the flag and where it acts exactly where its keys say it does nothing; with
     --drop-inapplicable the run goes on with the default. (--resume, --evaluate, --init-from are commands
     and sources: tested on their own.)"""
     monkeypatch.chdir(tmp_path)
@@ -77,7 +88,7 @@ def test_a_flag_given_where_it_does_nothing_is_refused_and_anywhere_else_taken(n
             parse(argv)
         message = str(refused.value)
         assert message.startswith(f"{' '.join(typed(name, DEFAULTS[name]))} does nothing in this run ("), message
-        assert f"it is for {cli.APPLIES[name][1]}" in message and "\n" not in message
+        assert f"it is for {cli.scope(name)[1]}" in message and "\n" not in message
         cfg, run, _ = parse([*argv, "--drop-inapplicable"])
         assert getattr(cfg if name in vars(cfg) else run, name) == DEFAULTS[name]
 
@@ -118,7 +129,7 @@ def test_the_issues_cases_are_one_line(argv, message, tmp_path, monkeypatch, cap
 def test_drop_inapplicable_records_the_default_and_says_so_in_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     cfg, run, _ = cli.parse_args(["--method", "drq", "--recon-coef", "1.0", "--dear-feature", "push", "--lr", "3e-4",
-                                  "--drop-inapplicable"], train.Config, sear.METHODS)
+                                  "--drop-inapplicable"], train.Config, train.METHODS)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("sear.py: warning: --drop-inapplicable: ignored what does nothing "
                                                    "in this run (drq on walker-walk), config.json records the default: "
@@ -211,7 +222,7 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-@pytest.mark.parametrize("method", list(sear.METHODS))
+@pytest.mark.parametrize("method", list(train.METHODS))
 def test_a_setting_changes_the_update_exactly_where_the_table_says_it_acts(method, one_thread):
     tiny = dict(method=method, latent_dim=64, hidden_dim=32, feature_dim=8, batch_size=4, action_repeat=2,
                 **({"ef_agent_dim": 8} if method == "ef" else {}))  # EF's agent part below any latent tried
