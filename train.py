@@ -83,9 +83,9 @@ def act(agents: list[Agent], obs: dict, step: int, eval_mode: bool) -> np.ndarra
     (the masks only for DrQ-RGBM, whose encoder reads them), each seed's agent acts on its own,
     and the actions come back in one read."""
     device = agents[0].device
-    pixels = torch.as_tensor(obs["pixels"]).to(device)
+    pixels = torch.as_tensor(obs["pixels"], device=device)
     rgbm = isinstance(agents[0], baselines.RGBMAgent)
-    masks = torch.as_tensor(obs["mask"]).to(device) if rgbm else None
+    masks = torch.as_tensor(obs["mask"], device=device) if rgbm else None
     actions = [a.act(pixels[i], None if masks is None else masks[i], step, eval_mode)
                for i, a in enumerate(agents)]
     return torch.stack(actions).cpu().numpy()

@@ -7,10 +7,12 @@ worker sends per step; and, with real envs, each worker's private memory.
     python benchmarks/step_counts.py --seeds 2 --env walker-walk # real envs: the workers' memory too
 
 Counted per agent step over --steps steps after a warm-up:
-  h2d        tensors made from host data on the agents' device (aten.lift_fresh: torch.as_tensor of an
-             array) and copies from the host to it: what crosses PCIe on a GPU. The replay here lives on
-             the host (the default off CUDA): its writes copy host memory to host memory.
-  syncs      host reads of device data (.cpu(), .numpy(), .item(), a copy to the host).
+  h2d        tensors made from host data for the agents (aten.lift_fresh: torch.as_tensor of an array,
+             while train.act runs): what crosses PCIe to a GPU.
+  writes     tensors made from host data for the replay rings (ReplayBuffer.add), per seed: on the
+             host by default (host memory to host memory), on the GPU with --replay-device cuda.
+  syncs      host reads of device data: .cpu() or a copy to the host, .item(); .numpy() of a tensor
+             .cpu() already brought to the host is not counted again.
   answer     what a worker sends per step: its observation through shared memory (the newest frame and
              its bit-packed mask) plus its pickled reward, flags and info through the pipe.
   private    a worker's private memory (Private_Clean + Private_Dirty of /proc/PID/smaps_rollup).
@@ -18,6 +20,8 @@ Counted per agent step over --steps steps after a warm-up:
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
 import os
 import pickle
 import sys
@@ -101,13 +105,16 @@ def setup(args):
     return cfg, envs, agents, buffers
 
 
-def step_all(cfg, envs, agents, buffers, stacks, step):
+def step_all(cfg, envs, agents, buffers, stacks, step, counter=None):
     """One agent step of the loop for every seed: act, step, stack, write the replay."""
-    actions = train.act(agents, stacks.obs, step, eval_mode=False)
+    where = counter.during if counter else lambda name: contextlib.nullcontext()
+    with where("act"):
+        actions = train.act(agents, stacks.obs, step, eval_mode=False)
     newest, rewards, terminated, truncated, _ = envs.step("train", actions)
     stacks.push(slice(None), newest)
-    for i, b in enumerate(buffers):
-        b.add(actions[i], rewards[i], terminated[i], stacks.seed(i))
+    with where("writes"):
+        for i, b in enumerate(buffers):
+            b.add(actions[i], rewards[i], terminated[i], stacks.seed(i))
     return terminated | truncated
 
 
@@ -124,13 +131,15 @@ def measure(args) -> dict:
         counter = StepCounter()
         with counter, update_counts.HostReads(counter.sync_names):
             for step in range(3, 3 + args.steps):
-                step_all(cfg, envs, agents, buffers, stacks, step)
+                step_all(cfg, envs, agents, buffers, stacks, step, counter)
         scalar_reads = len(counter.scalar_reads)
+        counter.sync_names.pop("Tensor.numpy", None)
         env = stand_in({"seed": 0}, "train", True, False) if not args.env else None
         answer = answer_bytes(env or runenvs.newest_frame_env(dict(envs_config(args)), "train", True, False))
         kids = children(os.getpid())
         private = [private_mb(k) for k in kids]
-        return {"seeds": n, "h2d": counter.lifts / args.steps,
+        return {"seeds": n, "h2d": counter.lifts["act"] / args.steps,
+                "writes": counter.lifts["writes"] / args.steps / n,
                 "syncs": (sum(counter.sync_names.values()) + scalar_reads) / args.steps,
                 "answer": answer, "workers": len(kids), "private": private}
     finally:
@@ -147,11 +156,19 @@ class StepCounter(update_counts.OpCounter):
 
     def __init__(self):
         super().__init__("cpu")
-        self.lifts = 0
+        self.lifts, self.part = collections.Counter(), None
+
+    @contextlib.contextmanager
+    def during(self, part: str):
+        self.part = part
+        try:
+            yield
+        finally:
+            self.part = None
 
     def __torch_dispatch__(self, func, types_, args=(), kwargs=None):
         if func.overloadpacket in (torch.ops.aten.lift_fresh, torch.ops.aten.lift_fresh_copy):
-            self.lifts += 1
+            self.lifts[self.part] += 1
         return super().__torch_dispatch__(func, types_, args, kwargs)
 
 
@@ -176,10 +193,12 @@ def main(argv=None) -> int:
     shared, pipe = m["answer"]
     print(f"## One agent step of {m['seeds']} seeds ({args.method}, {'stand-in envs' if not args.env else args.env}, "
           f"{m['workers']} env workers)\n")
-    print("| host->device copies | host syncs | worker answer: shared memory + pipe | worker private memory |")
-    print("|---|---|---|---|")
+    print("| host->device copies | host syncs | replay writes per seed | worker answer: shared memory + pipe "
+          "| worker private memory |")
+    print("|---|---|---|---|---|")
     mem = (f"{np.mean(m['private']):.0f} MB mean, {max(m['private']):.0f} MB largest" if m["private"] else "n/a")
-    print(f"| {m['h2d']:.1f} | {m['syncs']:.1f} | {shared} + {pipe} = {(shared + pipe) / 1000:.1f} KB | {mem} |")
+    print(f"| {m['h2d']:.1f} | {m['syncs']:.1f} | {m['writes']:.1f} | {shared} + {pipe} = "
+          f"{(shared + pipe) / 1000:.1f} KB | {mem} |")
     return 0
 
 

@@ -11,10 +11,12 @@ Layering: imports cli.py and envs.py, and segment.py only for learned masks; no 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import multiprocessing
 import signal
+import sys
 import types
 
 import gymnasium as gym
@@ -196,6 +198,20 @@ def as_worker():
         pass
 
 
+@contextlib.contextmanager
+def main_not_imported():
+    """While workers spawn: this process's main script hidden from multiprocessing, which would import
+    it again in every child (sear.py imports torch: ~300 MB a worker); they need only this module."""
+    main = sys.modules["__main__"]
+    saved = {key: main.__dict__[key] for key in ("__file__", "__spec__") if key in main.__dict__}
+    main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        yield
+    finally:
+        main.__dict__.update(saved)
+
+
 class NewestFrame(gym.ObservationWrapper):
     """An env of a stack of one whose observation's mask is bit-packed: what crosses to the loop."""
 
@@ -272,7 +288,8 @@ class SeedEnvs:
         autoreset = gym.vector.AutoresetMode.DISABLED
         if workers:
             try:
-                return gym.vector.AsyncVectorEnv(fns, context="spawn", autoreset_mode=autoreset)
+                with main_not_imported():
+                    return gym.vector.AsyncVectorEnv(fns, context="spawn", autoreset_mode=autoreset)
             except Exception as e:  # noqa: BLE001 (any failure to start: the fallback runs, and says why)
                 print(f"envs: the worker processes did not start ({cli.first_sentence(e)}); stepping them here")
                 self.kind = "this process, one seed after another"

@@ -52,3 +52,42 @@ def test_readme_lists_every_definition_sear_on_another_agent_needs():
              (namespace["encoder"].fc.weight, namespace["aux"].mask_decoder.fc[0].weight,
               namespace["aux"].recon_decoder.fc[0].weight, critic.weight)]
     assert all(moved)
+
+
+def free_names(names: list[str]) -> set[str]:
+    """The names the listed definitions of sear.py load that they neither define, nor bind themselves,
+    nor take from the modules sear.py imports at its top (torch, numpy, the standard library), nor
+    from Python's builtins: what a reader's copy would lack, even in a line no test runs."""
+    import builtins
+    tree = ast.parse((ROOT / "sear.py").read_text())
+    imported = set()
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            imported |= {(a.asname or a.name).split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            imported |= {a.asname or a.name for a in node.names}
+    known = set(names) | imported | set(dir(builtins)) | {"__class__"}
+    free = set()
+    for node in (n for n in tree.body if getattr(n, "name", None) in names):
+        bound = set()
+        for sub in ast.walk(node):
+            if isinstance(sub, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                a = sub.args
+                bound |= {x.arg for x in [*a.posonlyargs, *a.args, *a.kwonlyargs, a.vararg, a.kwarg] if x}
+            if isinstance(sub, (ast.FunctionDef, ast.ClassDef)):
+                bound.add(sub.name)
+            if isinstance(sub, ast.Name) and isinstance(sub.ctx, (ast.Store, ast.Del)):
+                bound.add(sub.id)
+            if isinstance(sub, ast.ExceptHandler) and sub.name:
+                bound.add(sub.name)
+        free |= {f"{sub.id} (in {node.name})" for sub in ast.walk(node)
+                 if isinstance(sub, ast.Name) and isinstance(sub.ctx, ast.Load) and sub.id not in known | bound}
+    return free
+
+
+def test_the_copy_list_closes():
+    """Every name the listed definitions use is defined by the list or comes from torch, numpy or
+    the standard library: a copied AuxLoss that named ReplayBuffer, say, fails here."""
+    names, _ = readme_block()
+    assert free_names(names) == set()
+    assert free_names([n for n in names if n != "Decoder"]) == {"Decoder (in SearAux)"}
