@@ -696,7 +696,8 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     drm = [n for n in jobs if "drq+drm" in n]
     assert len(drm) == 5 and all("--seed " in jobs[n] and "--drm" in jobs[n] for n in drm)  # one process a seed
     assert printed.count("packing: drq+drm runs one seed per job: --seeds does not take --drm") == 1
-    assert "10 to run in 8 processes (" in printed and "; 2 seeds per job (--seeds-per-job)" in printed
+    assert "10 to run in 8 processes (" in printed
+    assert line(printed, "sweep custom: ").endswith("; 2 seeds per job (--seeds-per-job 2; drq+drm: one seed per job)")
     assert "x 2 seeds a job; --mem-gb sets it" in line(printed, "memory: ")
     assert not out.exists()
 
@@ -716,6 +717,26 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     assert sweep.main(["--seeds-per-job", "3", *argv]) == 0
     jobs, printed = dry_run(capsys)
     assert [n.split("__")[2] for n in jobs if n.startswith("walker-walk__drq__")] == ["1", "seeds2-3", "seeds4-5"]
+
+
+def test_the_header_says_how_many_seeds_each_job_runs(tmp_path, capsys):
+    """The largest pack that runs, not the number asked for: 4 seeds make one pack of 4 whatever
+    --seeds-per-job asks; a method that cannot pack says one seed per job there too."""
+    argv = ["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--seeds", "1-4", "--engine", "local",
+            "--dry-run", "--frames", "40"]
+    assert sweep.main([*argv, "--methods", "drq", "--seeds-per-job", "100000"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-4"]
+    assert line(printed, "sweep custom: ").endswith(
+        "to run in 1 process (local, 2 at a time, 1 thread(s) each, no GPU); 4 seeds per job (--seeds-per-job "
+        "100000; at most 4 seeds of a task and method to run)")
+    assert sweep.main([*argv, "--methods", "curl", "--seeds-per-job", "2"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert len(jobs) == 4 and all("--seed " in c for c in jobs.values())
+    assert line(printed, "packing: ").startswith("packing: curl runs one seed per job: --seeds does not take")
+    assert line(printed, "sweep custom: ").endswith(
+        "4 to run (local, 2 at a time, 1 thread(s) each, no GPU); 1 seed per job (--seeds-per-job 2; curl: one "
+        "seed per job)")
 
 
 def test_the_default_seeds_per_job_comes_from_the_gpus_memory_here_and_is_4_on_slurm(tmp_path, monkeypatch, capsys):
@@ -817,8 +838,8 @@ def test_a_pack_takes_every_seeds_lock_and_writes_every_seeds_status(tmp_path):
     pack = sweep_dir / "walker-walk__drq__seeds1-2__abcd1234"
     for d in (*seeds, pack):
         d.mkdir(parents=True)
-    job = sweep.PackJob(str(pack), [str(d) for d in seeds], ["--env", "walker-walk", "--seeds", "1-2"],
-                        ["--device", "auto"], 3, script=str(script))
+    job = sweep.SearJob(str(pack), ["--env", "walker-walk", "--seeds", "1-2"], ["--device", "auto"], 3,
+                        script=str(script), seed_dirs=[str(d) for d in seeds])
     sweep.write_json(str(seeds[1] / "lock"), sweep.whoami())  # seed 2 runs elsewhere
     assert job().startswith(f"skipped: already running (pid {os.getpid()} on ")
     assert not (seeds[0] / "lock").exists() and calls(tmp_path) == []  # seed 1's lock given back
@@ -877,8 +898,9 @@ def test_report_success_rates_per_task_and_rliable_over_tasks(tmp_path):
         "metaworld-hammer": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.1 * s}"]),
         "metaworld-door-open": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.3 * s}"])})
     table = sweep.report(str(out), "g", specs, None)
-    # per task: mean +- t(0.975, 2) * sd / sqrt(3) over seeds 1-3 (seed 4 unfinished)
-    assert "| metaworld-hammer | sear | 3 | 10 | 0.2 ± 0.248 |" in table
+    # per task: the mean over seeds 1-3 (seed 4 unfinished), its percentile-bootstrap CI: with 3 seeds, a
+    # resample of one seed thrice has a chance of 1/27 > 2.5%, so the CI is the lowest and highest seed
+    assert "| metaworld-hammer | sear | 3 | 10 | 0.2 [0.1, 0.3] |" in table
     # over the tasks: the 6 final success rates 0.1 0.2 0.3 | 0.3 0.6 0.9, as they are
     point, ci, mean, mean_ci = aggregate_row(table, "sear")
     assert point == pytest.approx(iqm([0.1, 0.2, 0.3, 0.3, 0.6, 0.9]), abs=5e-4) and point == pytest.approx(0.35)
