@@ -1058,17 +1058,21 @@ def test_a_folder_with_several_sweeps_names_the_command_that_shows_each(finished
     assert printed[-1] == "1 jobs: 1 done" and printed[-2].startswith("cup-catch__sear__1__")
 
 
-def test_an_old_sweep_folder_without_the_record_says_which_command_shows_it(finished_sweep, capsys):
+def test_an_old_sweep_folder_without_the_record_shows_the_jobs_its_folders_hold(finished_sweep, capsys):
+    """A sweep folder from before sweep.json: its jobs are those its job folders' job.json name (its
+    flags, kept nowhere else, cannot pick among them); --envs, --methods and --seeds pick a subset, and
+    one it does not hold is one line naming what it holds."""
     out, args, flags = finished_sweep
     (out / "custom" / "sweep.json").unlink(missing_ok=True)  # as sweep folders were before sweep.py kept it
-    assert sweep.main([*args, "--status"]) == 2
-    assert capsys.readouterr().err == (
-        f"sweep.py: error: {out / 'custom'} holds 8 jobs, none of those these arguments name, and no sweep.json (the "
-        f"record of its flags, which older sweeps lack): give the sweep's own flags after --, or show all of its "
-        f"jobs: python sweep.py --out {out} --status\n")
-    for argv in (["--out", str(out)], [*args, "--", *flags]):  # both still work
+    for argv in (["--out", str(out)], args, [*args, "--", *flags]):
         assert sweep.main(["--status", *argv]) == 0
         assert capsys.readouterr().out.splitlines()[-1] == "8 jobs: 8 done"
+    assert sweep.main(["--out", str(out), "--methods", "sear", "--seeds", "2", "--status"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "2 jobs: 2 done"
+    assert sweep.main(["--out", str(out), "--envs", "cheetah-run", "--status"]) == 2
+    assert capsys.readouterr().err == (
+        f"sweep.py: error: the sweep in {out / 'custom'} has none of these jobs: it has envs cup-catch, "
+        "walker-walk; methods drq, sear; seeds 1, 2\n")
     assert sweep.main(["--out", str(out), "--grid", "kitchen", "--status"]) == 2  # never run: nothing to show
     assert capsys.readouterr().err == (f"sweep.py: error: no sweep in {out / 'kitchen'}; {out} holds custom: "
                                        f"python sweep.py --out {out} --status\n")
