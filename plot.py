@@ -152,7 +152,8 @@ def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = F
     for p, rows in enumerate(present.T):
         at = np.ravel(which) == p
         if rows.sum() > 1:
-            ci[:, at] = bootstrap({"": ys[rows][:, at][:, None]}, lambda x: x.mean(axis=(0, 1)))[1][""]
+            _, bounds = bootstrap({"": ys[rows][:, at][:, None]}, lambda x: x.mean(axis=(0, 1)))
+            ci[:, at] = bounds[""]
     return grid, np.nanmean(ys, axis=0), ci
 
 
@@ -196,8 +197,12 @@ def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
         by_env.setdefault(env_of(r), []).append(cli.acting_settings(r["config"]))
     named = {*keys, "env", *(["drm"] if "method" in keys else [])}  # drm: in the method's label
     names = sorted({k for cs in by_env.values() for c in cs for k in c} - NOT_A_SETTING - named)
-    return [k for k in names if any(len({json.dumps(c[k], sort_keys=True) for c in cs if k in c}) > 1
-                                    for cs in by_env.values())]
+    return [k for k in names if any(differ(k, configs) for configs in by_env.values())]
+
+
+def differ(key: str, configs: list[dict]) -> bool:
+    """Whether the configs that record `key` hold more than one value of it."""
+    return len({json.dumps(c[key], sort_keys=True) for c in configs if key in c}) > 1
 
 
 def split_by_config(label: str, group: list[dict], differ: list[str]) -> dict[str, list[dict]]:
@@ -212,7 +217,7 @@ def split_by_config(label: str, group: list[dict], differ: list[str]) -> dict[st
 
 
 def task_mean_runs(task_runs: list[dict]) -> list[dict]:
-    """--per-task: per run, its mean over its tasks at the frames every task has, as one more task."""
+    """--per-task: per run, its mean over its tasks at the frames every task has, as a task."""
     by_dir, means = {}, []
     for r in task_runs:
         by_dir.setdefault(r["dir"], []).append(r)
@@ -220,8 +225,8 @@ def task_mean_runs(task_runs: list[dict]) -> list[dict]:
         frames = reduce(np.intersect1d, [t["frames"] for t in tasks])
         if len(frames):
             values = np.mean([t["values"][np.isin(t["frames"], frames)] for t in tasks], axis=0)
-            means.append({"dir": d, "config": tasks[0]["config"], "frames": frames, "values": values,
-                          "task": f"mean over {len(tasks)} tasks"})
+            means.append({"dir": d, "config": tasks[0]["config"], "frames": frames,
+                          "values": values, "task": f"mean over {len(tasks)} tasks"})
     return means
 
 
@@ -258,30 +263,19 @@ def fit_text(text, width_px: float, renderer) -> None:
     chars = max(map(len, paragraphs))
     while chars > 8 and text.get_window_extent(renderer).width > width_px:
         chars -= max(1, chars // 20)
-        text.set_text("\n".join(textwrap.fill(p, chars, break_long_words=False) for p in paragraphs))
+        text.set_text("\n".join(textwrap.fill(p, chars, break_long_words=False)
+                                for p in paragraphs))
 
 
 def place_legend(fig, entries: dict, title: str | None, spare, renderer):
     """One legend for every panel: in the grid's empty slot (`spare`) if it fits there, else below
     the panels (the figure grows); as many columns as fit, labels wrapped to a column."""
-    import matplotlib
     where = spare if spare is not None else fig
     width = 0.98 * where.get_window_extent(renderer).width
-    # characters per line at "small" (0.833 x the font size), about 0.6 em each
-    per_line = int(width / fig.dpi * 72 / (0.6 * 0.833 * matplotlib.rcParams["font.size"]))
     loc = {"loc": "upper left", "frameon": False} if spare is not None else {
         "loc": "outside lower center"}
-    for ncol in range(len(entries), 0, -1):
-        chars = max(12, per_line // ncol - 6)  # room for the handle
-        if chars < max(map(len, entries)) and ncol > 1:  # fewer columns before wrapped labels
-            continue
-        labels = [textwrap.fill(label, chars, break_long_words=False) for label in entries]
-        legend = where.legend(list(entries.values()), labels, ncol=ncol, fontsize="small",
-                              title=title, title_fontsize="small", **loc)
-        box = legend.get_window_extent(renderer)
-        if box.width <= width or ncol == 1:
-            break
-        legend.remove()
+    legend = widest_legend(fig, where, entries, width, renderer, title=title, **loc)
+    box = legend.get_window_extent(renderer)
     if spare is not None and box.height > spare.get_window_extent(renderer).height:
         legend.remove()  # too tall for the slot: below the panels instead
         spare.set_visible(False)
@@ -291,8 +285,26 @@ def place_legend(fig, entries: dict, title: str | None, spare, renderer):
     return legend
 
 
+def widest_legend(fig, where, entries: dict, width: float, renderer, **kwargs):
+    """The legend in as many columns as fit `width` pixels, fewer columns before wrapped labels."""
+    import matplotlib
+    # characters per line at "small" (0.833 x the font size), about 0.6 em each
+    per_line = int(width / fig.dpi * 72 / (0.6 * 0.833 * matplotlib.rcParams["font.size"]))
+    for ncol in range(len(entries), 0, -1):
+        chars = max(12, per_line // ncol - 6)  # room for the handle
+        if chars < max(map(len, entries)) and ncol > 1:
+            continue
+        labels = [textwrap.fill(label, chars, break_long_words=False) for label in entries]
+        legend = where.legend(list(entries.values()), labels, ncol=ncol, fontsize="small",
+                              title_fontsize="small", **kwargs)
+        if legend.get_window_extent(renderer).width <= width or ncol == 1:
+            return legend
+        legend.remove()
+
+
 def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple | None = None,
-         references: dict | None = None, estimates: dict | None = None, ylabels: dict | None = None):
+         references: dict | None = None, estimates: dict | None = None,
+         ylabels: dict | None = None):
     """panels: {panel: {label: (frames, mean, ci, runs per frame, envs)}}. estimates: {panel: what
     its lines and bands are} where not "mean ± 95% CI" (the legend's title, or the panels' titles
     where panels differ); ylabels: {panel: its y-label} where not `ylabel`; references: {panel:
@@ -304,73 +316,100 @@ def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple | None
     rows = math.ceil(len(panels) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows),
                              squeeze=False, layout="constrained")
-    used = list(axes.flat[:len(panels)])
-    what = {panel: (estimates or {}).get(panel, "mean ± 95% CI") for panel in panels}
-    one = len(set(what.values())) == 1
-    axes_text = {panel: ((panel if len(panels) > 1 else title) + ("" if one else f"\n{what[panel]}"),
-                         (ylabels or {}).get(panel, ylabel)) for panel in panels}
-    dashed, entries = draw_panels(used, panels, axes_text, baseline, references or {})
+    texts, one = panel_texts(panels, title, ylabel, estimates or {}, ylabels or {})
+    dashed, entries = draw_panels(axes.flat, panels, texts, baseline, references or {})
     for ax in axes.flat[len(panels):]:
         ax.axis("off")
-    legend_title = "; ".join([*([next(iter(what.values()))] if one else []),
-                              *(["dashed: fewer runs"] if dashed else [])])
-    lay_out(fig, axes, used, entries, legend_title or None, title if len(panels) > 1 else None)
+    legend_title = "; ".join([*([one] if one else []), *(["dashed: fewer runs"] if dashed else [])])
+    lay_out(fig, axes, len(panels), entries, legend_title or None,
+            title if len(panels) > 1 else None)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=120)
     plt.close(fig)
 
 
-def draw_panels(used: list, panels: dict, axes_text: dict, baseline, references: dict):
-    """Each panel's lines (mean and band; n: runs per frame), baseline and references, then its
-    (title, y-label). -> whether a line is dashed somewhere, and the legend's entries: the lines,
-    then the others."""
-    from matplotlib.ticker import FuncFormatter
+def panel_texts(panels: dict, title: str, ylabel: str, estimates: dict, ylabels: dict):
+    """({panel: (title, y-label)}, the estimate every panel shows, or None where they differ: then
+    each panel's title says its own)."""
+    what = {panel: estimates.get(panel, "mean ± 95% CI") for panel in panels}
+    one = next(iter(what.values())) if len(set(what.values())) == 1 else None
+    titles = {panel: panel if len(panels) > 1 else title for panel in panels}
+    return {panel: (titles[panel] + ("" if one else f"\n{what[panel]}"), ylabels.get(panel, ylabel))
+            for panel in panels}, one
+
+
+def draw_panels(axes, panels: dict, texts: dict, baseline, references: dict) -> tuple[bool, dict]:
+    """Each panel's lines, baseline and references, then its (title, y-label). -> whether a line
+    is dashed somewhere, and the legend's entries: the lines first, then the others."""
     colors = {label: f"C{i % 10}" for i, label in  # same line, same colour on every panel
               enumerate(sorted({label for curves in panels.values() for label in curves}))}
     dashed, entries, others = False, {}, {}
-    for ax, (panel, curves) in zip(used, panels.items()):
-        for label, (frames, mean, ci, n, _env) in curves.items():
-            n = np.broadcast_to(np.asarray(n), np.shape(frames))
-            dashed |= draw_mean(ax, frames, mean, n == n.max(), colors[label], f"{label} (n={n.max()})")
-            if n.max() > 1:
-                ax.fill_between(frames, ci[0], ci[1], color=colors[label], alpha=0.2, lw=0)
-        entries.update((lb, h) for h, lb in zip(*ax.get_legend_handles_labels()) if lb not in entries)
-        if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
-            ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
-        for i, ref in enumerate(references.get(panel, [])):
-            draw_reference(ax, ref, i, upto=max(c[0][-1] for c in curves.values()))
-        ax.set(title=axes_text[panel][0], xlabel="frames", ylabel=axes_text[panel][1])
-        ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
-        ax.grid(alpha=0.3)
-        if ax.get_ylabel().endswith("success rate"):  # [0, 1], whatever matplotlib's margins do
-            ax.set_ylim(0.0, 1.0)
-        others.update((lb, h) for h, lb in zip(*ax.get_legend_handles_labels()) if lb not in entries)
+    for ax, (panel, curves) in zip(axes, panels.items()):
+        dashed |= draw_lines(ax, curves, colors)
+        entries.update(legend_entries(ax, entries))
+        finish_panel(ax, baseline, references.get(panel, []), curves, texts[panel])
+        others.update(legend_entries(ax, entries))
     return dashed, {**entries, **others}
 
 
-def lay_out(fig, axes, used: list, entries: dict, legend_title: str | None, suptitle: str | None):
+def draw_lines(ax, curves: dict, colors: dict) -> bool:
+    """A panel's lines: mean and band (n: runs per frame). True if one is dashed somewhere."""
+    dashed = False
+    for label, (frames, mean, ci, n, _env) in curves.items():
+        n = np.broadcast_to(np.asarray(n), np.shape(frames))
+        dashed |= draw_mean(ax, frames, mean, n == n.max(), colors[label], f"{label} (n={n.max()})")
+        if n.max() > 1:
+            ax.fill_between(frames, ci[0], ci[1], color=colors[label], alpha=0.2, lw=0)
+    return dashed
+
+
+def legend_entries(ax, known: dict) -> dict:
+    """{label: handle} of the axes' artists not yet in `known`."""
+    return {lb: h for h, lb in zip(*ax.get_legend_handles_labels()) if lb not in known}
+
+
+def finish_panel(ax, baseline, references: list, curves: dict, texts: tuple[str, str]) -> None:
+    """A panel's baseline, reference curves (cut to its runs' last frame), title and axes; a success
+    rate on [0, 1], whatever matplotlib's margins do."""
+    from matplotlib.ticker import FuncFormatter
+    if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
+        ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
+    for i, ref in enumerate(references):
+        draw_reference(ax, ref, i, upto=max(c[0][-1] for c in curves.values()))
+    ax.set(title=texts[0], xlabel="frames", ylabel=texts[1])
+    ax.xaxis.set_major_formatter(FuncFormatter(short_frames))
+    ax.grid(alpha=0.3)
+    if texts[1].endswith("success rate"):
+        ax.set_ylim(0.0, 1.0)
+
+
+def lay_out(fig, axes, n: int, entries: dict, legend_title: str | None, suptitle: str | None):
     """The legend (inside a single panel when short, else in the grid's empty slot or below), titles
-    wrapped to fit, and the axes kept AXES_HEIGHT tall (the figure grows)."""
+    wrapped to fit, and the n panels' axes kept AXES_HEIGHT tall (the figure grows)."""
+    used, renderer = list(axes.flat[:n]), fig.canvas.get_renderer()
     suptitle = fig.suptitle(suptitle) if suptitle is not None else None
-    renderer = fig.canvas.get_renderer()
-    if len(used) == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries), default=0) \
-            <= LABEL_INSIDE:
+    if n == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries)) <= LABEL_INSIDE:
         used[0].legend(fontsize="small", title=legend_title, title_fontsize="small")
-    elif entries:
+    else:
         fig.canvas.draw()  # the layout: the empty slot's size
-        spare = axes.flat[len(used)] if len(used) < axes.size else None
-        place_legend(fig, entries, legend_title, spare, renderer)
+        place_legend(fig, entries, legend_title, axes.flat[n] if n < axes.size else None, renderer)
     fig.canvas.draw()
     for ax in used:
         fit_text(ax.title, ax.get_window_extent(renderer).width, renderer)
     if suptitle is not None:
         fit_text(suptitle, 0.98 * fig.get_figwidth() * fig.dpi, renderer)
-    for _ in range(4):  # the layout runs again on each draw
+    keep_axes_height(fig, used, axes.shape[0])
+
+
+def keep_axes_height(fig, used: list, rows: int) -> None:
+    """Grow the figure until its shortest axes is AXES_HEIGHT inches tall (the layout runs again on
+    each draw)."""
+    for _ in range(4):
         fig.canvas.draw()
         short = AXES_HEIGHT - min(ax.get_position().height for ax in used) * fig.get_figheight()
         if short <= 0.01:
-            break
-        fig.set_size_inches(fig.get_figwidth(), fig.get_figheight() + short * axes.shape[0] + 0.05)
+            return
+        fig.set_size_inches(fig.get_figwidth(), fig.get_figheight() + short * rows + 0.05)
 
 
 def summary_table(panels: dict, metric: str) -> str:
@@ -382,14 +421,16 @@ def summary_table(panels: dict, metric: str) -> str:
         for label, (frames, mean, ci, n, env) in curves.items():
             n = np.broadcast_to(np.asarray(n), np.shape(frames))
             seeds = f"{n.max()}" + (f" ({n[-1]} at the last frame)" if n[-1] < n.max() else "")
-            final = f"{mean[-1]:.4g}" + ("" if n[-1] == 1 else f" [{ci[0][-1]:.4g}, {ci[1][-1]:.4g}]")
+            final = f"{mean[-1]:.4g}" + ("" if n[-1] == 1 else
+                                         f" [{ci[0][-1]:.4g}, {ci[1][-1]:.4g}]")
             lines.append(f"| {env} | {label} | {seeds} | {frames[-1]:.0f} | {final} |")
     return "\n".join(lines)
 
 
 # ---------------------------------------------------------------- --reference: published curves
 # DrQ-v2's format (facebookresearch/drqv2, curves/dmc_<task>.csv): one row per seed and evaluation,
-# columns seed, frame, episode_reward, task and agent; without a task column, the file's name says it.
+# columns seed, frame, episode_reward, task and agent; without a task column, the file name says
+# the task.
 REFERENCE_COLUMNS = ("seed", "frame", "episode_reward")
 
 
@@ -407,49 +448,56 @@ def parse_reference(spec: str) -> tuple[str, str | None]:
 def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
     """{task key: {"label", "frames", "mean", "min", "max", "seeds", "values"}} of a published curve
     file: per task its seeds on the frames they all have, values (seeds, frames)."""
-    if not os.path.isfile(path):
-        raise PlotError(f"--reference {path}: no such file")
-    header, rows = read_csv(path, "eval")
-    missing = [c for c in REFERENCE_COLUMNS if c not in header]
-    if missing or not rows:
-        raise PlotError(f"--reference {path}: " + (
-            f"no {missing[0]!r} column (a published curve has columns {', '.join(REFERENCE_COLUMNS)}, "
-            "and task or a dmc_<task>.csv name)" if missing else "no rows"))
-    file_task = os.path.splitext(os.path.basename(path))[0].removeprefix("dmc_")
-    seeds, agents, curves = {}, {}, {}  # task -> seed -> {frame: return}; task -> agent names
-    for row in rows:
-        task = task_key(row.get("task") or file_task)
-        try:
-            point = float(row["frame"]), float(row["episode_reward"])
-        except (TypeError, ValueError):
-            raise PlotError(f"--reference {path}: bad row {row}") from None
-        seeds.setdefault(task, {}).setdefault(row["seed"], {})[point[0]] = point[1]
-        agents.setdefault(task, set()).add(row.get("agent") or "")
-    for task, by_seed in seeds.items():
-        if len(agents[task]) > 1:
+    curves = {}
+    for task, (by_seed, agents) in read_reference(path).items():
+        if len(agents) > 1:
             raise PlotError(f"--reference {path}: {task} has curves of several agents "
-                            f"({', '.join(sorted(agents[task]))}); give one agent per file")
+                            f"({', '.join(sorted(agents))}); give one agent per file")
         frames = reduce(np.intersect1d, [np.array(sorted(points)) for points in by_seed.values()])
         if len(frames) == 0:
             raise PlotError(f"--reference {path}: the seeds of {task} share no frames")
         ys = np.array([[points[x] for x in frames] for points in by_seed.values()])
-        name = label or f"{agents[task].pop() or os.path.basename(path)} (published)"
+        name = label or f"{agents.pop() or os.path.basename(path)} (published)"
         curves[task] = {"label": name, "frames": frames, "mean": ys.mean(axis=0), "values": ys,
                         "min": ys.min(axis=0), "max": ys.max(axis=0), "seeds": len(by_seed)}
     return curves
+
+
+def read_reference(path: str) -> dict[str, tuple[dict, set]]:
+    """{task key: ({seed: {frame: return}}, agent names)} of a published curve file."""
+    if not os.path.isfile(path):
+        raise PlotError(f"--reference {path}: no such file")
+    header, rows = read_csv(path, "eval")
+    missing = [c for c in REFERENCE_COLUMNS if c not in header]
+    if missing:
+        raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has "
+                        f"columns {', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv "
+                        "name)")
+    if not rows:
+        raise PlotError(f"--reference {path}: no rows")
+    file_task = os.path.splitext(os.path.basename(path))[0].removeprefix("dmc_")
+    tasks = {}
+    for row in rows:
+        by_seed, agents = tasks.setdefault(task_key(row.get("task") or file_task), ({}, set()))
+        try:
+            by_seed.setdefault(row["seed"], {})[float(row["frame"])] = float(row["episode_reward"])
+        except (TypeError, ValueError):
+            raise PlotError(f"--reference {path}: bad row {row}") from None
+        agents.add(row.get("agent") or "")
+    return tasks
 
 
 def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]]) -> dict:
     """{panel: the reference curves drawn on it}: each on every panel holding a run on its task; a
     reference that matches no panel is an error."""
     drawn = {panel: [] for panel in panel_envs}
+    plotted = sorted({e for envs in panel_envs.values() for e in envs})
     for path, curves in references:
+        if not {task_key(e) for e in plotted} & set(curves):
+            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no "
+                            f"plotted env ({', '.join(plotted)})")
         for panel, envs in panel_envs.items():
             drawn[panel] += [curves[t] for t in sorted({task_key(e) for e in envs} & set(curves))]
-        if not any(task_key(e) in curves for envs in panel_envs.values() for e in envs):
-            plotted = ", ".join(sorted({e for envs in panel_envs.values() for e in envs}))
-            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no "
-                            f"plotted env ({plotted})")
     return drawn
 
 
@@ -550,7 +598,8 @@ def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
 
 def overlay_maps(image: np.ndarray, maps: np.ndarray, alpha: float = 0.5) -> np.ndarray:
     """Each channel of `maps` (C, h, w) as a heat map over `image` (H, W, 3) uint8: resized to H x W
-    (bilinear), normalised to [0, 1] per channel, coloured with jet, blended -> (C, H, W, 3) uint8."""
+    (bilinear), normalised to [0, 1] per channel, coloured with jet, blended: (C, H, W, 3)
+    uint8."""
     import torch
     import torch.nn.functional as F
     from matplotlib import colormaps
@@ -571,7 +620,7 @@ def channel_grid(tiles: np.ndarray, cols: int = 8, pad: int = 2) -> np.ndarray:
 
 
 def robot_units(masks: np.ndarray, side: int) -> np.ndarray:
-    """The true mask at the centre of each map unit's receptive field: (N, H, W) -> (N, side, side)."""
+    """The true mask at the centre of each map unit's receptive field, (N, side, side)."""
     centres = RF_OFFSET + RF_STRIDE * np.arange(side)
     return masks[:, centres][:, :, centres]
 
@@ -684,8 +733,8 @@ def maps_main(argv) -> int:
     parser = cli.OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's "
                                "last convolution for runs on the same frames (the paper's section "
                                "5), and each channel's share of activation on the robot.")
-    parser.add_argument("runs", nargs="+", help="run directories (config.json, snapshot.pt), one env")
-    parser.add_argument("--out", default="runs/maps.png", help="PNG to write (default runs/maps.png)")
+    parser.add_argument("runs", nargs="+", help="run directories (snapshot.pt), on one env")
+    parser.add_argument("--out", default="runs/maps.png", help="PNG (default runs/maps.png)")
     parser.add_argument("--frames", type=int, default=2, help=f"{MAPS_STRIDE} agent steps apart")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     try:
@@ -708,7 +757,7 @@ def build_parser():
     p = cli.OneLineParser(prog="plot.py", description=__doc__.split("\n\n")[0],
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
-    p.add_argument("--out", default="runs/curves.png", help="PNG to write (default runs/curves.png)")
+    p.add_argument("--out", default="runs/curves.png", help="PNG (default runs/curves.png)")
     p.add_argument("--metric", default="return", help="return | success | any column of the CSV "
                    "read (e.g. --csv train --metric dormant_ratio)")
     p.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
@@ -719,8 +768,8 @@ def build_parser():
     p.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
                    help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
     p.add_argument("--reference", action="append", default=[], metavar="CSV[:LABEL]",
-                   help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and min-max "
-                        "band over its seeds, on the panels of its task; repeatable")
+                   help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and "
+                        "min-max band over its seeds, on the panels of its task; repeatable")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     return p
 
@@ -729,12 +778,6 @@ def checked_args(args) -> tuple[list, tuple[float, str] | None, list[str]]:
     """(--reference curves, --baseline, --group keys), read and checked before any run is."""
     references = [(path, load_reference(path, label))
                   for path, label in map(parse_reference, args.reference)]
-    value, _, label = (args.baseline or "0").partition(":")
-    try:
-        baseline = None if args.baseline is None else (float(value), label or "baseline")
-    except ValueError:
-        raise PlotError("--baseline must be VALUE[:LABEL], e.g. 1.6:random; got "
-                        f"{args.baseline!r}") from None
     if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
         raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
     keys = [k.strip() for k in args.group.split(",") if k.strip()]
@@ -742,13 +785,22 @@ def checked_args(args) -> tuple[list, tuple[float, str] | None, list[str]]:
         raise PlotError("--group needs at least one config key, e.g. method")
     if args.per_task and args.csv != "eval":
         raise PlotError("--per-task reads eval.csv (per-task columns are written by evaluations)")
-    return references, baseline, keys
+    return references, parse_baseline(args.baseline), keys
 
 
-def panel_runs(args, keys: list[str]) -> dict[str, list[dict]]:
-    """{panel: runs} of the runs the paths name (with --per-task one per task, and their means): one
-    panel per env, unless env is a grouping key (or there is one); with --per-task one per task. A
-    run without the CSV yet is skipped with one line."""
+def parse_baseline(spec: str | None) -> tuple[float, str] | None:
+    """--baseline VALUE[:LABEL] -> (value, label); None without one."""
+    value, _, label = (spec or "0").partition(":")
+    try:
+        return None if spec is None else (float(value), label or "baseline")
+    except ValueError:
+        raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {spec!r}") \
+            from None
+
+
+def load_runs(args) -> list[dict]:
+    """The runs the paths name (with --per-task one per task, and their means); a run without the
+    CSV yet is skipped with one line."""
     runs, found = [], find_runs(args.paths)
     for d in found:
         try:
@@ -759,35 +811,45 @@ def panel_runs(args, keys: list[str]) -> dict[str, list[dict]]:
     if not runs:
         raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written "
                         f"{args.csv}.csv yet")
-    runs += task_mean_runs(runs) if args.per_task else []
+    return runs + (task_mean_runs(runs) if args.per_task else [])
+
+
+def panel_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
+    """{panel: runs}: one panel per env, unless env is a grouping key (or there is one); with
+    --per-task one per task (and env)."""
     envs, keyed = sorted({env_of(r) for r in runs}), {}
+    by_env = len(envs) > 1 and "env" not in keys
     for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
-        key = ": ".join(([env_of(r)] if len(envs) > 1 and "env" not in keys else [])
-                        + ([r["task"]] if "task" in r else []))
+        key = ": ".join(([env_of(r)] if by_env else []) + ([r["task"]] if "task" in r else []))
         keyed.setdefault(key or ", ".join(envs), []).append(r)
     return keyed
 
 
 def panel_lines(panel: str, members: list[dict], keys: list[str], interpolate: bool) -> dict:
-    """{label: (frames, mean, ci, runs per frame, envs)} of a panel's lines; stderr warns of repeated
-    seeds and of runs that end at different frames (each is drawn to its own end)."""
+    """{label: (frames, mean, ci, runs per frame, envs)} of a panel's lines."""
     lines, differ = {}, differing_settings(members, keys)
     for label, group in (line for g in group_runs(members, keys).items()
                          for line in split_by_config(*g, differ).items()):
-        seeds, ends = [r["config"].get("seed") for r in group], [int(r["frames"][-1]) for r in group]
-        if len(set(seeds)) < len(seeds):
-            print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
-        if len(set(ends)) > 1:
-            counts = ", ".join(f"{e}" + (f" (x{ends.count(e)})" if ends.count(e) > 1 else "")
-                               for e in sorted(set(ends)))
-            print(f"plot.py: warning: {label} ({panel}): runs end at frames {counts}; each is drawn "
-                  "to its own end, the mean and CI at a frame are over the runs that reached it "
-                  "(dashed where not all did)", file=sys.stderr)
+        warn(f"{label} ({panel})", label, group)
         curves = [(r["frames"], r["values"]) for r in group]
         envs = ", ".join(sorted({env_of(r) for r in group}))
         envs += f": {group[0]['task']}" if "task" in group[0] else ""  # --per-task: the task too
         lines[label] = (*aggregate(curves, interpolate), coverage(curves, interpolate), envs)
     return lines
+
+
+def warn(where: str, label: str, group: list[dict]) -> None:
+    """A line's repeated seeds, and its runs that end at different frames (each is drawn to its own
+    end), each a line on stderr."""
+    seeds, ends = [r["config"].get("seed") for r in group], [int(r["frames"][-1]) for r in group]
+    if len(set(seeds)) < len(seeds):
+        print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
+    if len(set(ends)) > 1:
+        counts = ", ".join(f"{e}" + (f" (x{ends.count(e)})" if ends.count(e) > 1 else "")
+                           for e in sorted(set(ends)))
+        print(f"plot.py: warning: {where}: runs end at frames {counts}; each is drawn to its own "
+              "end, the mean and CI at a frame are over the runs that reached it (dashed where not "
+              "all did)", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -797,19 +859,24 @@ def main(argv=None) -> int:
     try:
         args = build_parser().parse_args(argv)
         references, baseline, keys = checked_args(args)
-        keyed = panel_runs(args, keys)
+        keyed = panel_runs(load_runs(args), keys)
         panels = {panel: panel_lines(panel, members, keys, args.csv == "train")
                   for panel, members in keyed.items()}
-        envs = sorted({env_of(r) for members in keyed.values() for r in members})
+        envs = {panel: {env_of(r) for r in members} for panel, members in keyed.items()}
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else args.metric}"
-        title = args.title or (f"{ylabel} ({envs[0]})" if len(envs) == 1 else ylabel)
-        plot(panels, args.out, ylabel, title, baseline, references_for(
-            {panel: {env_of(r) for r in members} for panel, members in keyed.items()}, references))
+        plot(panels, args.out, ylabel, args.title or default_title(ylabel, envs), baseline,
+             references_for(envs, references))
     except (PlotError, cli.ConfigError) as e:
         print(f"plot.py: error: {e}", file=sys.stderr)
         return 2
     print(f"{summary_table(panels, args.metric)}\n\nwrote {args.out}")
     return 0
+
+
+def default_title(ylabel: str, panel_envs: dict[str, set]) -> str:
+    """The y-label, and the env where every run is on one."""
+    envs = set().union(*panel_envs.values())
+    return f"{ylabel} ({envs.pop()})" if len(envs) == 1 else ylabel
 
 
 if __name__ == "__main__":

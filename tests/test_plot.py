@@ -52,6 +52,7 @@ def run_main(capsys, *argv):
 
 
 # ---------------------------------------------------------------- statistics
+@pytest.mark.filterwarnings("ignore:random_state is deprecated:FutureWarning")  # arch's, on rliable's call
 def test_the_band_is_rliables_percentile_bootstrap_of_the_mean_over_seeds():
     from rliable import library as rly
     values = np.array([3.0, 7.0, 8.0, 12.0, 20.0])
