@@ -351,10 +351,9 @@ def with_seed(spec: JobSpec, seed: int) -> JobSpec:
     return dataclasses.replace(spec, seed=seed, args=tuple(args))
 
 
-def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> tuple[list[Pack], list[str]]:
-    """(what runs, the variants that cannot pack): each seed's recorded pack (pack.json), a seed
-    that ran alone alone, the other seeds of each (env, variant, key) in order in packs of at most
-    k (fresh_packs)."""
+def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list[Pack]:
+    """What runs: each seed's recorded pack (pack.json), a seed that ran alone alone, and the other
+    seeds of each (env, variant, key) in order in packs of at most k."""
     units, fresh = {}, {}
     for spec in todo:
         recorded = read_json(os.path.join(sweep_dir, spec.name, PACK_FILE))
@@ -366,38 +365,20 @@ def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> tuple[list[Pack], list
         else:
             fresh.setdefault((spec.env, spec.variant, spec.key), []).append(spec)
             units[spec.name] = None  # its place in the order
-    refused = fresh_packs(fresh, k, units)
-    return list({u.name: u for u in units.values()}.values()), refused
-
-
-def fresh_packs(fresh: dict, k: int, units: dict) -> list[str]:
-    """Each (env, variant, key)'s seeds never started, into `units` in packs of at most k, one a
-    pack where group.refusal refuses the configuration (one line says why); -> those variants."""
-    from harness import group
-    refused = []
-    for (_, variant, _), specs in fresh.items():
-        cfg = sear_config(list(specs[0].args), specs[0].name, quiet=True)
-        why = group.refusal(cfg, cfg) if len(specs) > 1 else None
-        if why and variant not in refused:
-            print(f"packing: {variant} runs one seed per job: {why}")
-            refused.append(variant)
-        size = 1 if why else k
-        for chunk in (specs[i:i + size] for i in range(0, len(specs), size)):
+    for specs in fresh.values():
+        for chunk in (specs[i:i + k] for i in range(0, len(specs), k)):
             units.update((s.name, Pack(tuple(chunk))) for s in chunk)
-    return refused
+    return list({u.name: u for u in units.values()}.values())
 
 
-def packing_line(units: list[Pack], k: int, why: str, refused: list[str]) -> str:
+def packing_line(units: list[Pack], k: int, why: str) -> str:
     """What the header says of seeds per job: the largest pack that runs, and why it is not k."""
     most = max(len(u.specs) for u in units)
-    notes = [why]
     if most > k:
-        notes.append("earlier packs keep their seeds")
-    if most < k and not (refused and most == 1):
-        notes.append(f"at most {plural(most, 'seed')} of a task and method to run")
-    if refused:
-        notes.append(f"{', '.join(refused)}: one seed per job")
-    return f"{plural(most, 'seed')} per job ({'; '.join(notes)})"
+        why += "; earlier packs keep their seeds"
+    if most < k:
+        why += f"; at most {plural(most, 'seed')} of a task and method to run"
+    return f"{plural(most, 'seed')} per job ({why})"
 
 
 # What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the
@@ -505,17 +486,29 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
         k, k_why, slots = 1, "one seed of each task and method to run", None
     else:
         k, k_why, slots = seeds_per_job(args, engine, gpus, part, peak[0] * HEADROOM)
-    units, refused = packs(todo, k, sweep_dir)
+    units = packs(todo, k, sweep_dir)
+    if engine == "local":
+        check_pack_size(max(units, key=lambda u: len(u.specs)))
     node, have = largest_node(engine, part)
     mem_gb, line = job_memory(args, node, have, peak, max(len(u.specs) for u in units))
     parallel = args.jobs or min(max(1, cpu_count() // args.threads), slots or math.inf)
     if engine == "local":
-        parallel, line = fit_here(args, parallel, mem_gb, node, line)
+        parallel, line = local_parallel(args, parallel, mem_gb, node, line)
     print(line)
-    return units, packing_line(units, k, k_why, refused), mem_gb, parallel
+    return units, packing_line(units, k, k_why), mem_gb, parallel
 
 
-def fit_here(args, parallel: int, mem_gb: int, node: float, line: str) -> tuple[int, str]:
+def check_pack_size(pack: Pack) -> None:
+    """A pack of more seeds than this machine holds (group.check_size: its cores and memory) fails
+    here, in one line, rather than in each of its jobs."""
+    from harness import cli, group
+    try:
+        group.check_size(pack.seeds)
+    except cli.ConfigError as e:
+        raise SweepError(f"{pack.name}: {e}") from None
+
+
+def local_parallel(args, parallel: int, mem_gb: int, node: float, line: str) -> tuple[int, str]:
     """Jobs at a time on this machine, fewer where its memory holds fewer (an explicit --jobs is
     kept, with a note), and the memory line that says so."""
     if parallel * mem_gb <= node:

@@ -682,7 +682,7 @@ def dry_run(capsys, *argv):
             if ": sear.py " in ln}, printed
 
 
-def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_batch_runs_singly(tmp_path, capsys):
+def test_seeds_per_job_packs_each_tasks_and_methods_seeds_in_order(tmp_path, capsys):
     out = tmp_path / "sweeps"
     argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "drq+drm", "--seeds", "1-5",
             "--engine", "local", "--dry-run", "--", "--frames", "40"]
@@ -693,11 +693,10 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     assert drq == {f"walker-walk__drq__{name}__{key}":
                    f"--env walker-walk --method drq --drop-inapplicable {flag} --frames 40"
                    for name, flag in (("seeds1-2", "--seeds 1-2"), ("seeds3-4", "--seeds 3-4"), ("5", "--seed 5"))}
-    drm = [n for n in jobs if "drq+drm" in n]
-    assert len(drm) == 5 and all("--seed " in jobs[n] and "--drm" in jobs[n] for n in drm)  # one process a seed
-    assert printed.count("packing: drq+drm runs one seed per job: --seeds does not take --drm") == 1
-    assert "10 to run in 8 processes (" in printed
-    assert line(printed, "sweep custom: ").endswith("; 2 seeds per job (--seeds-per-job 2; drq+drm: one seed per job)")
+    drm = [n for n in jobs if "drq+drm" in n]  # --seeds takes every method, --drm too
+    assert [n.split("__")[2] for n in drm] == ["seeds1-2", "seeds3-4", "5"] and all("--drm" in jobs[n] for n in drm)
+    assert "10 to run in 6 processes (" in printed and "packing:" not in printed
+    assert line(printed, "sweep custom: ").endswith("; 2 seeds per job (--seeds-per-job 2)")
     assert "x 2 seeds a job; --mem-gb sets it" in line(printed, "memory: ")
     assert not out.exists()
 
@@ -719,24 +718,26 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     assert [n.split("__")[2] for n in jobs if n.startswith("walker-walk__drq__")] == ["1", "seeds2-3", "seeds4-5"]
 
 
-def test_the_header_says_how_many_seeds_each_job_runs(tmp_path, capsys):
+def test_the_header_says_how_many_seeds_each_job_runs(tmp_path, monkeypatch, capsys):
     """The largest pack that runs, not the number asked for: 4 seeds make one pack of 4 whatever
-    --seeds-per-job asks; a method that cannot pack says one seed per job there too."""
+    --seeds-per-job asks; curl packs as every method does; a pack this machine cannot hold is one line."""
     argv = ["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--seeds", "1-4", "--engine", "local",
             "--dry-run", "--frames", "40"]
     assert sweep.main([*argv, "--methods", "drq", "--seeds-per-job", "100000"]) == 0
     jobs, printed = dry_run(capsys)
     assert [n.split("__")[2] for n in jobs] == ["seeds1-4"]
     assert line(printed, "sweep custom: ").endswith(
-        "to run in 1 process (local, 2 at a time, 1 thread(s) each, no GPU); 4 seeds per job (--seeds-per-job "
-        "100000; at most 4 seeds of a task and method to run)")
+        "no GPU); 4 seeds per job (--seeds-per-job 100000; at most 4 seeds of a task and method to run)")
     assert sweep.main([*argv, "--methods", "curl", "--seeds-per-job", "2"]) == 0
     jobs, printed = dry_run(capsys)
-    assert len(jobs) == 4 and all("--seed " in c for c in jobs.values())
-    assert line(printed, "packing: ").startswith("packing: curl runs one seed per job: --seeds does not take")
-    assert line(printed, "sweep custom: ").endswith(
-        "4 to run (local, 2 at a time, 1 thread(s) each, no GPU); 1 seed per job (--seeds-per-job 2; curl: one "
-        "seed per job)")
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-2", "seeds3-4"] and "packing:" not in printed
+    assert line(printed, "sweep custom: ").endswith("no GPU); 2 seeds per job (--seeds-per-job 2)")
+    from harness import group
+    monkeypatch.setattr(group, "PEAK_BYTES_PER_SEED", 1e15)  # a machine that holds one seed at a time
+    assert sweep.main([*argv, "--methods", "drq", "--seeds-per-job", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sweep.py: error: walker-walk__drq__seeds1-2__") and "--seeds: 2 seeds do not fit" in err
+    assert err.count("\n") == 1
 
 
 def test_the_default_seeds_per_job_comes_from_the_gpus_memory_here_and_is_4_on_slurm(tmp_path, monkeypatch, capsys):
