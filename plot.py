@@ -185,7 +185,7 @@ def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
 NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer",
                  "save_video", "log_every", "snapshot_minutes", "resume", "learned_mask_iou",
                  "evaluate", "eval_every", "eval_episodes", "eval_episodes_per_task", "compile",
-                 "cuda_graphs", "tf32", "replay_device"}
+                 "cuda_graph", "cuda_graphs", "batch_seeds", "tf32", "replay_device"}
 
 
 def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:

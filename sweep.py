@@ -147,7 +147,7 @@ RESERVED = {"--env": "--envs", "--method": "--methods", "--seed": "--seeds", "--
             "--evaluate": "python sear.py --evaluate on a run directory of the sweep"}
 # Config fields that do not change the experiment, so they do not change the job's key.
 UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "threads", "log_every",
-           "save_buffer", "compile", "cuda_graphs"}
+           "save_buffer", "compile", "cuda_graph", "cuda_graphs", "batch_seeds"}
 
 
 def parse_seeds(tokens: list[str]) -> tuple[int, ...]:
@@ -352,23 +352,26 @@ def with_seed(spec: JobSpec, seed: int) -> JobSpec:
 
 
 def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list[Pack]:
-    """What runs: each seed's recorded pack (pack.json), a seed that ran alone alone, and the other
-    seeds of each (env, variant, key) in order in packs of at most k."""
+    """What runs: the packs seeds keep (kept_pack), and the other seeds of each (env, variant, key)
+    in order in packs of at most k."""
     units, fresh = {}, {}
     for spec in todo:
-        recorded = read_json(os.path.join(sweep_dir, spec.name, PACK_FILE))
-        if recorded:
-            unit = Pack(tuple(with_seed(spec, s) for s in recorded["seeds"]))
-            units.setdefault(unit.name, unit)
-        elif run_dirs(os.path.join(sweep_dir, spec.name)) or k == 1:
-            units[spec.name] = Pack((spec,))
-        else:
+        unit = kept_pack(spec, k, sweep_dir)
+        if unit is None:
             fresh.setdefault((spec.env, spec.variant, spec.key), []).append(spec)
-            units[spec.name] = None  # its place in the order
-    for specs in fresh.values():
-        for chunk in (specs[i:i + k] for i in range(0, len(specs), k)):
-            units.update((s.name, Pack(tuple(chunk))) for s in chunk)
+        units.setdefault(unit.name if unit else spec.name, unit)  # None: its place in the order
+    for chunk in (specs[i:i + k] for specs in fresh.values() for i in range(0, len(specs), k)):
+        units.update((s.name, Pack(tuple(chunk))) for s in chunk)
     return list({u.name: u for u in units.values()}.values())
+
+
+def kept_pack(spec: JobSpec, k: int, sweep_dir: str) -> Pack | None:
+    """The pack a seed keeps: its recorded one (pack.json), or itself where it ran alone (or k is
+    1); None for a seed never started, to pack anew."""
+    recorded = read_json(os.path.join(sweep_dir, spec.name, PACK_FILE))
+    if recorded:
+        return Pack(tuple(with_seed(spec, s) for s in recorded["seeds"]))
+    return Pack((spec,)) if run_dirs(os.path.join(sweep_dir, spec.name)) or k == 1 else None
 
 
 def packing_line(units: list[Pack], k: int, why: str) -> str:
@@ -487,8 +490,7 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
     else:
         k, k_why, slots = seeds_per_job(args, engine, gpus, part, peak[0] * HEADROOM)
     units = packs(todo, k, sweep_dir)
-    if engine == "local":
-        check_pack_size(max(units, key=lambda u: len(u.specs)))
+    check_pack_size(units, engine)
     node, have = largest_node(engine, part)
     mem_gb, line = job_memory(args, node, have, peak, max(len(u.specs) for u in units))
     parallel = args.jobs or min(max(1, cpu_count() // args.threads), slots or math.inf)
@@ -498,10 +500,13 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
     return units, packing_line(units, k, k_why), mem_gb, parallel
 
 
-def check_pack_size(pack: Pack) -> None:
-    """A pack of more seeds than this machine holds (group.check_size: its cores and memory) fails
-    here, in one line, rather than in each of its jobs."""
+def check_pack_size(units: list[Pack], engine: str) -> None:
+    """Here, a pack of more seeds than this machine holds (group.check_size: its cores and memory)
+    fails up front, in one line, rather than in each of its jobs."""
     from harness import cli, group
+    pack = max(units, key=lambda u: len(u.specs))
+    if engine != "local":
+        return
     try:
         group.check_size(pack.seeds)
     except cli.ConfigError as e:

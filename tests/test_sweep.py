@@ -164,14 +164,24 @@ def wait_for_files(p, folder, pattern, count=1):
         time.sleep(0.02)
 
 
+def wait_for_text(p, folder, pattern, text):
+    """Until a file under `folder` that matches `pattern` holds `text`, while the sweep process `p`
+    runs."""
+    deadline = time.time() + 120
+    while not any(text in f.read_text(errors="replace") for f in folder.glob(pattern)):
+        assert p.poll() is None, p.log.read_text()[-2000:]
+        assert time.time() < deadline, f"no {text!r} in {pattern} in time"
+        time.sleep(0.02)
+
+
 def test_local_sweep_killed_midway_then_rerun_finishes_without_duplicates(tmp_path, capsys):
     out = tmp_path / "sweeps"
     folder = out / "custom"
 
     # A sweep one job at a time, killed whole (driver, submitit's processes, sear.py) once the first
-    # job has written its first snapshot.
+    # job has written its snapshot at frame 20 (the one after its first updates).
     with sweep_process(tmp_path, sweep_args(out, "--jobs", "1")) as p:
-        wait_for_files(p, folder, "walker-walk__drq__1__*/run/*/snapshot.pt")
+        wait_for_text(p, folder, "walker-walk__drq__1__*/stdout.log", "snapshot at frame 20\n")
     first = next(folder.glob("walker-walk__drq__1__*"))
     assert not (first / "DONE").exists()
 
@@ -589,7 +599,8 @@ def test_real_slurm_sweep_cancelled_midway_resumes_and_then_submits_nothing(tmp_
     assert "#SBATCH --array=0-1" in script and "--gpus" not in script  # the node has no GPU: none asked
 
     # Cancel the first job once it has written a snapshot.
-    wait_for("snapshot", lambda: list(first.glob("run/*/snapshot.pt")))
+    log = first / "stdout.log"  # the snapshot after its first updates (one at frame 0 comes first)
+    wait_for("snapshot", lambda: log.exists() and "snapshot at frame 20\n" in log.read_text())
     job_id = sweep.read_json(str(first / "lock"))["job"]
     subprocess.run(["scancel", job_id], check=True)
     wait_for("end of the cancelled job", lambda: not in_queue(job_id))
