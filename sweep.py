@@ -504,9 +504,9 @@ def check_pack_size(units: list[Pack], engine: str) -> None:
     """Here, a pack of more seeds than this machine holds (group.check_size: its cores and memory)
     fails up front, in one line, rather than in each of its jobs."""
     from harness import cli, group
-    pack = max(units, key=lambda u: len(u.specs))
     if engine != "local":
         return
+    pack = max(units, key=lambda u: len(u.specs))
     try:
         group.check_size(pack.seeds)
     except cli.ConfigError as e:
