@@ -164,14 +164,24 @@ def wait_for_files(p, folder, pattern, count=1):
         time.sleep(0.02)
 
 
+def wait_for_text(p, folder, pattern, text):
+    """Until a file under `folder` that matches `pattern` holds `text`, while the sweep process `p`
+    runs."""
+    deadline = time.time() + 120
+    while not any(text in f.read_text(errors="replace") for f in folder.glob(pattern)):
+        assert p.poll() is None, p.log.read_text()[-2000:]
+        assert time.time() < deadline, f"no {text!r} in {pattern} in time"
+        time.sleep(0.02)
+
+
 def test_local_sweep_killed_midway_then_rerun_finishes_without_duplicates(tmp_path, capsys):
     out = tmp_path / "sweeps"
     folder = out / "custom"
 
     # A sweep one job at a time, killed whole (driver, submitit's processes, sear.py) once the first
-    # job has written its first snapshot.
+    # job has written its snapshot at frame 20 (the one after its first updates).
     with sweep_process(tmp_path, sweep_args(out, "--jobs", "1")) as p:
-        wait_for_files(p, folder, "walker-walk__drq__1__*/run/*/snapshot.pt")
+        wait_for_text(p, folder, "walker-walk__drq__1__*/stdout.log", "snapshot at frame 20\n")
     first = next(folder.glob("walker-walk__drq__1__*"))
     assert not (first / "DONE").exists()
 
@@ -589,7 +599,8 @@ def test_real_slurm_sweep_cancelled_midway_resumes_and_then_submits_nothing(tmp_
     assert "#SBATCH --array=0-1" in script and "--gpus" not in script  # the node has no GPU: none asked
 
     # Cancel the first job once it has written a snapshot.
-    wait_for("snapshot", lambda: list(first.glob("run/*/snapshot.pt")))
+    log = first / "stdout.log"  # the snapshot after its first updates (one at frame 0 comes first)
+    wait_for("snapshot", lambda: log.exists() and "snapshot at frame 20\n" in log.read_text())
     job_id = sweep.read_json(str(first / "lock"))["job"]
     subprocess.run(["scancel", job_id], check=True)
     wait_for("end of the cancelled job", lambda: not in_queue(job_id))
@@ -682,7 +693,7 @@ def dry_run(capsys, *argv):
             if ": sear.py " in ln}, printed
 
 
-def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_batch_runs_singly(tmp_path, capsys):
+def test_seeds_per_job_packs_each_tasks_and_methods_seeds_in_order(tmp_path, capsys):
     out = tmp_path / "sweeps"
     argv = ["--out", str(out), "--envs", "walker-walk", "--methods", "drq", "drq+drm", "--seeds", "1-5",
             "--engine", "local", "--dry-run", "--", "--frames", "40"]
@@ -693,10 +704,10 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     assert drq == {f"walker-walk__drq__{name}__{key}":
                    f"--env walker-walk --method drq --drop-inapplicable {flag} --frames 40"
                    for name, flag in (("seeds1-2", "--seeds 1-2"), ("seeds3-4", "--seeds 3-4"), ("5", "--seed 5"))}
-    drm = [n for n in jobs if "drq+drm" in n]
-    assert len(drm) == 5 and all("--seed " in jobs[n] and "--drm" in jobs[n] for n in drm)  # one process a seed
-    assert printed.count("packing: drq+drm runs one seed per job: --seeds does not take --drm") == 1
-    assert "10 to run in 8 processes (" in printed and "; 2 seeds per job (--seeds-per-job)" in printed
+    drm = [n for n in jobs if "drq+drm" in n]  # --seeds takes every method, --drm too
+    assert [n.split("__")[2] for n in drm] == ["seeds1-2", "seeds3-4", "5"] and all("--drm" in jobs[n] for n in drm)
+    assert "10 to run in 6 processes (" in printed and "packing:" not in printed
+    assert line(printed, "sweep custom: ").endswith("; 2 seeds per job (--seeds-per-job 2)")
     assert "x 2 seeds a job; --mem-gb sets it" in line(printed, "memory: ")
     assert not out.exists()
 
@@ -716,6 +727,28 @@ def test_seeds_per_job_packs_a_tasks_seeds_in_order_and_a_method_that_cannot_bat
     assert sweep.main(["--seeds-per-job", "3", *argv]) == 0
     jobs, printed = dry_run(capsys)
     assert [n.split("__")[2] for n in jobs if n.startswith("walker-walk__drq__")] == ["1", "seeds2-3", "seeds4-5"]
+
+
+def test_the_header_says_how_many_seeds_each_job_runs(tmp_path, monkeypatch, capsys):
+    """The largest pack that runs, not the number asked for: 4 seeds make one pack of 4 whatever
+    --seeds-per-job asks; curl packs as every method does; a pack this machine cannot hold is one line."""
+    argv = ["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--seeds", "1-4", "--engine", "local",
+            "--dry-run", "--frames", "40"]
+    assert sweep.main([*argv, "--methods", "drq", "--seeds-per-job", "100000"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-4"]
+    assert line(printed, "sweep custom: ").endswith(
+        "no GPU); 4 seeds per job (--seeds-per-job 100000; at most 4 seeds of a task and method to run)")
+    assert sweep.main([*argv, "--methods", "curl", "--seeds-per-job", "2"]) == 0
+    jobs, printed = dry_run(capsys)
+    assert [n.split("__")[2] for n in jobs] == ["seeds1-2", "seeds3-4"] and "packing:" not in printed
+    assert line(printed, "sweep custom: ").endswith("no GPU); 2 seeds per job (--seeds-per-job 2)")
+    from harness import group
+    monkeypatch.setattr(group, "PEAK_BYTES_PER_SEED", 1e15)  # a machine that holds one seed at a time
+    assert sweep.main([*argv, "--methods", "drq", "--seeds-per-job", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("sweep.py: error: walker-walk__drq__seeds1-2__") and "--seeds: 2 seeds do not fit" in err
+    assert err.count("\n") == 1
 
 
 def test_the_default_seeds_per_job_comes_from_the_gpus_memory_here_and_is_4_on_slurm(tmp_path, monkeypatch, capsys):
@@ -817,8 +850,8 @@ def test_a_pack_takes_every_seeds_lock_and_writes_every_seeds_status(tmp_path):
     pack = sweep_dir / "walker-walk__drq__seeds1-2__abcd1234"
     for d in (*seeds, pack):
         d.mkdir(parents=True)
-    job = sweep.PackJob(str(pack), [str(d) for d in seeds], ["--env", "walker-walk", "--seeds", "1-2"],
-                        ["--device", "auto"], 3, script=str(script))
+    job = sweep.SearJob(str(pack), ["--env", "walker-walk", "--seeds", "1-2"], ["--device", "auto"], 3,
+                        script=str(script), seed_dirs=[str(d) for d in seeds])
     sweep.write_json(str(seeds[1] / "lock"), sweep.whoami())  # seed 2 runs elsewhere
     assert job().startswith(f"skipped: already running (pid {os.getpid()} on ")
     assert not (seeds[0] / "lock").exists() and calls(tmp_path) == []  # seed 1's lock given back
@@ -877,8 +910,9 @@ def test_report_success_rates_per_task_and_rliable_over_tasks(tmp_path):
         "metaworld-hammer": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.1 * s}"]),
         "metaworld-door-open": ("frame,return,success", lambda s: ["0,0,0", f"10,1,{0.3 * s}"])})
     table = sweep.report(str(out), "g", specs, None)
-    # per task: mean +- t(0.975, 2) * sd / sqrt(3) over seeds 1-3 (seed 4 unfinished)
-    assert "| metaworld-hammer | sear | 3 | 10 | 0.2 ± 0.248 |" in table
+    # per task: the mean over seeds 1-3 (seed 4 unfinished), its percentile-bootstrap CI: with 3 seeds, a
+    # resample of one seed thrice has a chance of 1/27 > 2.5%, so the CI is the lowest and highest seed
+    assert "| metaworld-hammer | sear | 3 | 10 | 0.2 [0.1, 0.3] |" in table
     # over the tasks: the 6 final success rates 0.1 0.2 0.3 | 0.3 0.6 0.9, as they are
     point, ci, mean, mean_ci = aggregate_row(table, "sear")
     assert point == pytest.approx(iqm([0.1, 0.2, 0.3, 0.3, 0.6, 0.9]), abs=5e-4) and point == pytest.approx(0.35)
@@ -1036,17 +1070,21 @@ def test_a_folder_with_several_sweeps_names_the_command_that_shows_each(finished
     assert printed[-1] == "1 jobs: 1 done" and printed[-2].startswith("cup-catch__sear__1__")
 
 
-def test_an_old_sweep_folder_without_the_record_says_which_command_shows_it(finished_sweep, capsys):
+def test_an_old_sweep_folder_without_the_record_shows_the_jobs_its_folders_hold(finished_sweep, capsys):
+    """A sweep folder from before sweep.json: its jobs are those its job folders' job.json name (its
+    flags, kept nowhere else, cannot pick among them); --envs, --methods and --seeds pick a subset, and
+    one it does not hold is one line naming what it holds."""
     out, args, flags = finished_sweep
     (out / "custom" / "sweep.json").unlink(missing_ok=True)  # as sweep folders were before sweep.py kept it
-    assert sweep.main([*args, "--status"]) == 2
-    assert capsys.readouterr().err == (
-        f"sweep.py: error: {out / 'custom'} holds 8 jobs, none of those these arguments name, and no sweep.json (the "
-        f"record of its flags, which older sweeps lack): give the sweep's own flags after --, or show all of its "
-        f"jobs: python sweep.py --out {out} --status\n")
-    for argv in (["--out", str(out)], [*args, "--", *flags]):  # both still work
+    for argv in (["--out", str(out)], args, [*args, "--", *flags]):
         assert sweep.main(["--status", *argv]) == 0
         assert capsys.readouterr().out.splitlines()[-1] == "8 jobs: 8 done"
+    assert sweep.main(["--out", str(out), "--methods", "sear", "--seeds", "2", "--status"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "2 jobs: 2 done"
+    assert sweep.main(["--out", str(out), "--envs", "cheetah-run", "--status"]) == 2
+    assert capsys.readouterr().err == (
+        f"sweep.py: error: the sweep in {out / 'custom'} has none of these jobs: it has envs cup-catch, "
+        "walker-walk; methods drq, sear; seeds 1, 2\n")
     assert sweep.main(["--out", str(out), "--grid", "kitchen", "--status"]) == 2  # never run: nothing to show
     assert capsys.readouterr().err == (f"sweep.py: error: no sweep in {out / 'kitchen'}; {out} holds custom: "
                                        f"python sweep.py --out {out} --status\n")
