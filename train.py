@@ -256,11 +256,13 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None, seeds=N
             # As DrQ-v2, the agent acts from the first step: uniformly for --exploration-steps
             # agent steps (Agent.act), then the actor plus noise, not updated in the seed frames.
             actions = act(agents, stacks.obs, c.step, eval_mode=False)
+            # The envs step (in their workers) while the agents update.
+            envs.send("train", actions)
             if update_due(frame, c.step, cfg, samplers, buffers):
                 batches = [s.sample(cfg.batch_size, d.sample_rng) if s is b else s.next()
                            for s, b, d in zip(samplers, buffers, runs)]
                 runs.log_updates(learner.update(batches, c.step))
-            results = envs.step("train", actions)
+            results = envs.receive("train")
             stacks.push(slice(None), results[0])
             end_steps(runs, buffers, stacks, actions, results, ep)
         return runs.finish()

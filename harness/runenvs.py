@@ -278,6 +278,7 @@ class SeedEnvs:
             self.vectors[split] = self.vector(fns, workers)
             workers = workers and isinstance(self.vectors[split], gym.vector.AsyncVectorEnv)
         self.ended = {"train": np.ones(self.n, bool), "eval": np.ones(self.n, bool)}
+        self.pending = {}  # the actions of a step sent to envs in this process
         space = self.vectors["train"].single_observation_space
         self.action_dim = self.vectors["train"].single_action_space.shape[0]
         self.frame_shape = space["pixels"].shape
@@ -304,15 +305,31 @@ class SeedEnvs:
         self.ended[split] &= ~which
         return obs, infos
 
-    def step(self, split: str, actions):
-        """Every env steps (an ended eval env is reset first, unseeded, and its results are not
-        meant to be read); returns the vector env's step."""
+    def send(self, split: str, actions):
+        """Every env starts its step (workers step while this process goes on; an ended eval env is
+        reset first, unseeded, and its results are not meant to be read)."""
         check_finite(actions)
         if self.ended[split].any():
             self.reset(split, self.ended[split], [None] * self.n)
-        out = self.vectors[split].step(np.asarray(actions, np.float32))
+        actions, vector = np.asarray(actions, np.float32), self.vectors[split]
+        if isinstance(vector, gym.vector.AsyncVectorEnv):
+            vector.step_async(actions)
+        else:
+            self.pending[split] = actions
+
+    def receive(self, split: str):
+        """The step send() started: the vector env's (obs, rewards, terminated, truncated, infos)."""
+        vector = self.vectors[split]
+        if isinstance(vector, gym.vector.AsyncVectorEnv):
+            out = vector.step_wait()
+        else:
+            out = vector.step(self.pending.pop(split))
         self.ended[split] |= out[2] | out[3]
         return out
+
+    def step(self, split: str, actions):
+        self.send(split, actions)
+        return self.receive(split)
 
     def call(self, split: str, name: str):
         return self.vectors[split].call(name)
