@@ -590,7 +590,7 @@ def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
             x = torch.as_tensor(pixels).float()
             if isinstance(agent, baselines.RGBMAgent):  # its masks are part of its input
                 x = baselines.with_masks(x, torch.as_tensor(masks).float())
-            agent.encode(x)
+            agent.encoder(x)
     finally:
         hook.remove()
     return caught[0].float().numpy()

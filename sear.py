@@ -1,12 +1,9 @@
-"""SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023).
-
-DrQ-v2 (DDPG from pixels: random shifts, n-step returns, clipped double-Q, a linearly decaying
-exploration std) whose encoder is also trained by two decoders on a latent split in two halves: one
-predicts the robot's binary mask (Eq. 4), the other reconstructs the image (Eq. 5); the loss is
-Eq. 6, L = L_critic + c1 L_recon + c2 L_mask. Sections: 1. Config, 2. Networks, 3. Augmentation,
-4. Auxiliary losses and METHODS, 5. Agent, 6. Replay buffer. torch, numpy and the standard library
-only; `python sear.py --env walker-walk-distracting` runs the loop, train.py.
-"""
+"""SEAR: Structured Environment-Agent Representations for visual RL (ICML 2023). DrQ-v2 (DDPG from
+pixels: random shifts, n-step returns, clipped double-Q, a linearly decaying exploration std) whose
+encoder two decoders also train, on a latent split in two halves: one predicts the robot's mask
+(Eq. 4), the other reconstructs the image (Eq. 5); L = L_critic + c1 L_recon + c2 L_mask (Eq. 6).
+Sections: 1. Config, 2. Networks, 3. Augmentation, 4. Auxiliary losses and METHODS, 5. Agent,
+6. Replay buffer. torch, numpy and the standard library only; `python sear.py` runs train.py."""
 from __future__ import annotations
 
 import copy
@@ -21,7 +18,8 @@ import torch.nn.functional as F
 
 # ================================================================================================
 # 1. Config
-def arg(default, doc, choices=None, **keys):  # a field: doc (--help), fixed values, cli.py's keys
+def arg(default, doc, choices=None, **keys):
+    """A config field: its doc (--help), its values if a fixed set, and the keys cli.py reads."""
     return field(default=default, metadata={"doc": doc, "choices": choices, **keys})
 
 
@@ -140,8 +138,7 @@ class TruncatedNormal(torch.distributions.Normal):
         self.eps = eps
 
     def sample(self, clip=None, noise=None):
-        """loc + scale x noise, the noise clipped to +-clip; `noise`: standard normal draws of
-        loc's shape (the agent's, from its generator; torch's RNG when not given)."""
+        """loc + scale x noise (standard normal draws; torch's RNG if None), clipped to (-1, 1)."""
         noise = (torch.randn_like(self.loc) if noise is None else noise) * self.scale
         if clip is not None:
             noise = noise.clamp(-clip, clip)
@@ -196,13 +193,13 @@ class Critic(nn.Module):
 def random_shift(x: torch.Tensor, shift: torch.Tensor | None = None, pad: int = 4):
     """DrQ's random shift: replicate-pad by `pad`, then crop back with a per-sample integer shift
     (n, 1, 1, 2) in [0, 2 pad], done as a bilinear grid sample (DrQ-v2's RandomShiftsAug, its
-    arithmetic). Integer shifts land on pixel centres (to float32 rounding): a 0/1 mask stays 0/1."""
+    arithmetic). Integer shifts land on pixel centres (to float32 rounding): 0/1 masks stay 0/1."""
     n, c, h, w = x.shape
     assert h == w
     padded = F.pad(x, (pad,) * 4, mode="replicate")
     eps = 1.0 / (h + 2 * pad)
-    arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device, dtype=x.dtype)[:h]
-    arange = arange.unsqueeze(0).expand(h, h).unsqueeze(2)
+    arange = torch.linspace(-1.0 + eps, 1.0 - eps, h + 2 * pad, device=x.device, dtype=x.dtype)
+    arange = arange[:h].unsqueeze(0).expand(h, h).unsqueeze(2)
     base_grid = torch.cat([arange, arange.transpose(1, 0)], dim=2).unsqueeze(0)
     if shift is None:
         shift = torch.randint(0, 2 * pad + 1, size=(n, 1, 1, 2), device=x.device, dtype=x.dtype)
@@ -298,8 +295,7 @@ class SearAux(AuxLoss):
 
 @dataclass(frozen=True)
 class Method:
-    """A row of the methods table: its auxiliary loss (None: the critic alone trains the encoder),
-    its encoder (SEAR's "pooled", DrQ-v2's "drq"), whether it reads masks (else none is rendered)."""
+    """A method: its auxiliary loss, its encoder (SEAR's "pooled", DrQ-v2's "drq"), masks read."""
     doc: str
     aux: type[AuxLoss] | None = None
     encoder: str = "pooled"
@@ -316,8 +312,8 @@ METHODS = {
 # ================================================================================================
 # 5. Agent
 class Batch(NamedTuple):
-    """n-step transitions: obs (B, 3 x stack, H, W) uint8, its masks (B, stack, H, W) 0/1, the action
-    at obs, the n-step return, the bootstrap's gamma^m (0 after a termination), the obs m steps on."""
+    """n-step transitions: obs (B, 3 x stack, H, W) uint8, its masks (B, stack, H, W), the action,
+    the n-step return, the bootstrap's gamma^m (0 after a termination), the obs m steps on."""
     obs: torch.Tensor
     mask: torch.Tensor
     action: torch.Tensor
@@ -328,8 +324,7 @@ class Batch(NamedTuple):
 
 
 class Noise(NamedTuple):
-    """An update's random numbers in DrQ-v2's order (Agent.draw): the shifts of obs (and its masks)
-    and of next_obs, the standard normal noise of the target's action and of the actor's."""
+    """An update's random numbers in DrQ-v2's order: shifts, the target's and actor's noise."""
     shift: torch.Tensor
     next_shift: torch.Tensor
     target: torch.Tensor
@@ -360,7 +355,7 @@ def polyak(net: nn.Module, target: nn.Module, tau: float):
 
 class Agent:
     """DrQ-v2's agent whose encoder the method's auxiliary loss also trains (Eq. 6). A variant
-    overrides `act`, `std`, `next_value`, `joint_loss`, `critic_objective` or `update` (methods/)."""
+    overrides act, std, next_value, joint_loss, critic_objective or update (methods/)."""
     frame_channels = 3
 
     def __init__(self, cfg: Config, action_dim: int, device, method: Method | None = None):
@@ -394,11 +389,8 @@ class Agent:
                              "expl_std") + (self.aux.metric_names if self.aux else ())
 
     def std(self, step):
-        """The exploration std at this agent step: DrQ-v2's linear schedule."""
+        """The exploration std at this agent step."""
         return linear_std(self.cfg, step)
-
-    def encode(self, obs):
-        return self.encoder(obs)
 
     @torch.no_grad()
     def act(self, obs, mask, step: int, eval_mode: bool) -> torch.Tensor:
@@ -406,7 +398,7 @@ class Agent:
         by DrQ-RGBM alone), on the device: the actor's mean in evaluation; in training a sample with
         exploration noise, uniform for the first --exploration-steps agent steps."""
         obs = torch.as_tensor(obs, device=self.device).float()[None]
-        dist = self.actor(self.encode(obs), self.std(step))
+        dist = self.actor(self.encoder(obs), self.std(step))
         if eval_mode:
             return dist.mean[0]
         noise = torch.randn(dist.loc.shape, device=self.device, generator=self.rng)
@@ -416,9 +408,8 @@ class Agent:
         return action[0]
 
     def draw(self, n: int) -> Noise:
-        """The random numbers of an update on n samples, from the agent's generator, in DrQ-v2's
-        order: the update is then a function of its inputs, the same run as written, compiled, as
-        a CUDA graph or batched with other seeds (harness/speed.py)."""
+        """An update's random numbers, first, from the agent's generator: the update is then the
+        same as written, compiled, as a CUDA graph or batched with others (harness/speed.py)."""
         rng, device = self.rng, self.device
         shift = dict(size=(n, 1, 1, 2), device=device, dtype=torch.float32, generator=rng)
         noise = dict(size=(n, self.action_dim), device=device, generator=rng)
@@ -426,17 +417,15 @@ class Agent:
                      torch.randn(**noise), torch.randn(**noise))
 
     def next_value(self, next_latent, std, noise):
-        """The critic's bootstrap value of s': clipped double-Q, min(Q1', Q2') of the target
-        critic at the actor's next action with exploration noise of this `std`."""
+        """The bootstrap value of s': min(Q1', Q2') of the target at the actor's noisy action."""
         next_action = self.actor(next_latent, std).sample(clip=self.cfg.std_clip, noise=noise)
         return torch.min(*self.critic_target(next_latent, next_action))
 
     def joint_loss(self, latent, obs_aug, mask_aug, batch: Batch, step, noise: Noise):
-        """Eq. 6 on `latent`, the encoding of obs_aug (mask_aug: its masks, same shift): the loss,
-        and the logs' terms with expl_std."""
+        """Eq. 6 on `latent`, the encoding of obs_aug (mask_aug: its masks): the loss, its terms."""
         std = self.std(step)
         with torch.no_grad():
-            next_latent = self.encode(random_shift(batch.next_obs, noise.next_shift))
+            next_latent = self.encoder(random_shift(batch.next_obs, noise.next_shift))
             next_value = self.next_value(next_latent, std, noise.target)
             target_q = batch.reward + batch.discount * next_value
         q1, q2 = self.critic(latent, batch.action)
@@ -455,7 +444,7 @@ class Agent:
             obs_aug, mask_aug = random_shift(batch.obs, noise.shift), None
         else:
             obs_aug, mask_aug = shift_together(batch.obs, batch.mask, noise.shift)
-        latent = self.encode(obs_aug)
+        latent = self.encoder(obs_aug)
         return (*self.joint_loss(latent, obs_aug, mask_aug, batch, step, noise), latent)
 
     def update_critic(self, batch: Batch, step, noise: Noise):
@@ -473,8 +462,7 @@ class Agent:
         return -torch.min(*self.critic(latent, action)).mean(), dist.mean.detach()
 
     def update_actor(self, latent, std, noise):
-        """DDPG: move the actor towards actions of higher min(Q1, Q2). `latent` is detached: this
-        loss trains no encoder; nor the critic, whose gradient is not even computed (`inputs`)."""
+        """DDPG's step; `latent` is detached: no encoder learns from it, nor the critic."""
         actor_loss, mu = self.actor_loss(latent, std, noise)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward(inputs=list(self.actor.parameters()))
@@ -492,9 +480,8 @@ class Agent:
         return self.learn(batch, step, self.draw(len(batch.obs)))
 
     def learn(self, batch: Batch, step: torch.Tensor, noise: Noise) -> dict:
-        """The update, tensors in and out: the joint step of Eq. 6, the actor's (at the std the
-        critic's target used), Polyak averaging, a method's own step (CURL's, last as in
-        curl_sac.py). `step`: the agent step, a float64 0-d tensor."""
+        """The update, tensors in and out: Eq. 6's step, the actor's (at the target's std), Polyak,
+        a method's own step (CURL's, last as curl_sac.py's). `step`: a float64 0-d tensor."""
         batch = type(batch)._make(None if x is None else x.float() for x in batch)
         latent, metrics = self.update_critic(batch, step, noise)
         metrics.update(self.update_actor(latent, metrics["expl_std"], noise.actor))
@@ -521,15 +508,16 @@ class Agent:
 # 6. Replay buffer
 class ReplayBuffer:
     """A ring of time steps on `device`: step t's newest frame, its mask bit-packed (882 bytes at
-    84x84), the action and reward that led to it, whether it is terminal, whether it starts an
-    episode. Frame stacks (the first frame repeats at an episode start), masks and n-step returns
-    are built at sampling; a time limit's end bootstraps, a termination does not. Draws follow
-    DrQ-v2's loader: an episode uniformly among the finished ones, then a start inside it."""
+    84x84), the action and reward that led to it, whether it is terminal or starts an episode.
+    Frame stacks (the first frame repeats at an episode start), masks and n-step returns are built
+    at sampling; a time limit bootstraps, a termination does not. Draws follow DrQ-v2's loader:
+    an episode uniformly among the finished ones, then a start inside it."""
 
     ARRAYS = ("frames", "masks", "actions", "rewards", "terminal", "first")
 
-    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount, device="cpu"):
-        self.capacity, self.stack, self.nstep, self.discount = capacity, frame_stack, nstep, discount
+    def __init__(self, capacity, frame_shape, action_dim, frame_stack, nstep, discount,
+                 device="cpu"):
+        self.capacity, self.nstep, self.gamma, self.stack = capacity, nstep, discount, frame_stack
         self.frame_shape, self.device = tuple(frame_shape), torch.device(device)
         h, w = frame_shape[1:]
         ring = dict(device=self.device)
@@ -557,7 +545,7 @@ class ReplayBuffer:
         mask = np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1))
         self.masks[i] = torch.from_numpy(mask)
         self.actions[i] = torch.as_tensor(action)
-        self.rewards[i], self.terminal[i], self.first[i] = float(reward), bool(terminal), bool(first)
+        self.rewards[i], self.terminal[i], self.first[i] = float(reward), terminal, first
         self.t += 1
 
     def add_first(self, obs):
@@ -581,8 +569,7 @@ class ReplayBuffer:
         return len(self.drawable(max(0, self.t - self.capacity + margin))) > 0
 
     def sample(self, batch_size, rng: np.random.Generator, margin=0) -> Batch | None:
-        """A batch drawn with `rng`, or None while no episode can be drawn. margin: the oldest
-        slots kept out of the draws (a sampler thread reads while the loop writes them)."""
+        """A batch drawn with `rng` (None while none can be), the `margin` oldest slots left out."""
         lo = max(0, self.t - self.capacity + margin)
         if not len(self.drawable(lo)):
             return None
@@ -593,8 +580,7 @@ class ReplayBuffer:
         return self.transitions(times)
 
     def draw_starts(self, n, rng: np.random.Generator, lo):
-        """n start times: an episode uniformly among those drawable from lo, then a start from
-        which all n steps lie inside it (an episode's last n-1 steps start none, as DrQ-v2's)."""
+        """n starts: an episode among those from lo, then a start whose n steps lie inside it."""
         first, steps = self.drawable(lo).T
         e = rng.integers(len(first), size=n)
         return first[e] + rng.integers(0, steps[e] - self.nstep + 1)
@@ -612,14 +598,13 @@ class ReplayBuffer:
         return pixels, bits.view(b, self.stack, -1)[..., :h * w].view(b, self.stack, h, w)
 
     def transitions(self, times) -> Batch:
-        """The n-step transitions from `times` (each inside one episode): R = sum_k gamma^(k-1)
-        r_(t+k) and the bootstrap's discount gamma^n, 0 if the episode terminated at t+n (only the
-        window's last step can end it), in float32 as numpy computes them."""
-        times = torch.as_tensor(np.asarray(times, dtype=np.int64)).to(self.device, non_blocking=True)
+        """The n-step transitions from `times`: R = sum_k gamma^(k-1) r_(t+k), and gamma^n (0 if the
+        episode terminated at t+n, the window's only possible end), in float32 as numpy's."""
+        times = torch.as_tensor(np.asarray(times, dtype=np.int64), device=self.device)
         ret, gamma_n = torch.zeros(len(times), device=self.device), np.float32(1.0)
         for k in range(1, self.nstep + 1):
             ret += float(gamma_n) * self.rewards[(times + k) % self.capacity]
-            gamma_n *= np.float32(self.discount)
+            gamma_n *= np.float32(self.gamma)
         last = self.terminal[(times + self.nstep) % self.capacity]
         discount = torch.where(last, 0.0, float(gamma_n))
         obs, mask = self.stacked(times)
@@ -631,4 +616,5 @@ class ReplayBuffer:
 if __name__ == "__main__":
     import os
     import runpy
-    runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), "train.py"), run_name="__main__")
+    here = os.path.dirname(os.path.abspath(__file__))
+    runpy.run_path(os.path.join(here, "train.py"), run_name="__main__")

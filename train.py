@@ -1,6 +1,6 @@
 """The training loop of sear.py's agent, as drqv2's train.py to its drqv2.py: the experiment's
-settings (Config), the agent and the replay of each method, evaluation, and `train`: one loop for one
-seed (--seed k) or several in lockstep (--seeds 1-16), each seed the run --seed k is.
+settings (Config), each method's agent and replay, evaluation, and `train`: one loop for one seed
+(--seed k) or several in lockstep (--seeds 1-16), each seed the run --seed k is.
 `python sear.py ...` and `python train.py ...` are the same command.
 
 Around it: harness/ (the command line, the run directories, the seeds' envs, the speed layer) and
@@ -30,10 +30,12 @@ METHODS = {**sear.METHODS, **baselines.METHODS, **foresight.METHODS}
 
 
 @dataclass
-class Config(sear.Config, baselines.BaselineConfig, foresight.ForesightConfig, drm.DrMConfig, experiment.EnvConfig):
-    """The experiment: the task, its budget and its evaluation, on top of the algorithm's hyper-parameters
-    (sear.Config), the baselines' and DrM's settings and the envs' (masks, distractors, rendering). One
-    --flag each (the doc is its help). How a process runs it (device, files, snapshots) is cli.RunConfig."""
+class Config(sear.Config, baselines.BaselineConfig, foresight.ForesightConfig, drm.DrMConfig,
+             experiment.EnvConfig):
+    """The experiment: the task, its budget and its evaluation, on top of the algorithm's
+    hyper-parameters (sear.Config), the baselines' and DrM's settings and the envs' (masks,
+    distractors, rendering). One --flag each (the doc is its help). How a process runs it
+    (device, files, snapshots) is cli.RunConfig."""
     env: str = arg("walker-walk", "task name; see envs.py (e.g. walker-walk-distracting, "
                                   "metaworld-door-open)", metavar="ENV", group="what to run")
     seed: int = arg(1, "seeds python, numpy, torch and the environments", group="what to run",
@@ -95,10 +97,11 @@ def act(agents: list[Agent], obs: dict, step: int, eval_mode: bool) -> np.ndarra
 # Evaluation
 # ================================================================================================
 class Episode(NamedTuple):
-    """An evaluation episode."""
+    """An evaluation episode: its return, its success (None where the env reports none), its task
+    (a task set's; None for one task)."""
     ret: float
-    success: bool | None  # None where the env reports no success
-    task: str | None      # the task of a task set, else None
+    success: bool | None
+    task: str | None
 
 
 def evaluate(agents, envs: runenvs.SeedEnvs, step: int, watches=None, on_step=None, stop=None):
@@ -114,13 +117,15 @@ def evaluate(agents, envs: runenvs.SeedEnvs, step: int, watches=None, on_step=No
         if stop is not None and stop():
             break
         seeds = [runenvs.episode_seed(a.cfg.seed + runenvs.EVAL_SEED, e) for a in agents]
-        newest, _ = envs.reset("eval", np.ones(n, bool), seeds, None if task is None else {"task": task})
+        options = None if task is None else {"task": task}
+        newest, _ = envs.reset("eval", np.ones(n, bool), seeds, options)
         stacks.reset(slice(None), newest)
         running, ret, success, last, t = np.ones(n, bool), np.zeros(n), np.zeros(n, bool), {}, 0
         for i, watch in enumerate(watches or ()):
             watch.see(stacks.seed(i), new_episode=True)
         while running.any():
-            newest, reward, terminated, truncated, infos = envs.step("eval", act(agents, stacks.obs, step, True))
+            actions = act(agents, stacks.obs, step, eval_mode=True)
+            newest, reward, terminated, truncated, infos = envs.step("eval", actions)
             stacks.push(running, newest)
             t += 1
             for i in np.flatnonzero(running):
@@ -131,7 +136,8 @@ def evaluate(agents, envs: runenvs.SeedEnvs, step: int, watches=None, on_step=No
                     watches[i].see(stacks.seed(i))
             ended = running & (terminated | truncated)
             for i in np.flatnonzero(ended):
-                episodes[i].append(Episode(ret[i], success[i] if "success" in last[i] else None, task))
+                reported = success[i] if "success" in last[i] else None
+                episodes[i].append(Episode(ret[i], reported, task))
             running &= ~ended
             if on_step:
                 on_step(e, t)
@@ -141,17 +147,19 @@ def evaluate(agents, envs: runenvs.SeedEnvs, step: int, watches=None, on_step=No
 def evaluate_and_log(agents, envs, runs: group.Runs) -> None:
     """An evaluation of every seed now: its episodes scored and filmed by each run dir, eval.csv's
     row. While a first SIGTERM waits there is none, and one it cuts short at an episode end leaves
-    last_eval_frame as it was: the run stops at its stop point, and the resumed run evaluates again."""
+    last_eval_frame as it was: the run stops at its stop point, and its resume evaluates again."""
     if runs.dirs[0].stop_pending():
         return
     watches = runs.each("start_eval", envs.tasks)
     lead = runs.dirs[0]
     episodes = evaluate(agents, envs, lead.counters.step, watches, on_step=runs.show_eval,
                         stop=lead.stop_pending)
-    learned_iou = envs.call("eval", "pop") if runenvs.measures_learned_iou(lead.cfg) else [None] * len(runs)
+    learned_iou = [None] * len(runs)
+    if runenvs.measures_learned_iou(lead.cfg):
+        learned_iou = envs.call("eval", "pop")
     for i, d in enumerate(runs):
+        # False: cut short
         if runs.call(i, "end_eval", episodes[i], learned_iou[i]):
-            # False: cut short
             d.counters.last_eval_frame = d.counters.step * d.cfg.action_repeat
     runs.say_eval(episodes)
 
@@ -176,8 +184,8 @@ def build(runs: group.Runs, envs: runenvs.SeedEnvs, run: cli.RunConfig, device, 
         agents.append(make_agent(cfg, envs.action_dim, device))
         if source is not None:
             experiment.copy_parts(agents[-1], source, run.init_parts)
-        ring = dict(frame_shape=envs.frame_shape, action_dim=envs.action_dim, frame_stack=cfg.frame_stack,
-                    nstep=cfg.nstep, discount=cfg.discount)
+        ring = dict(frame_shape=envs.frame_shape, action_dim=envs.action_dim,
+                    frame_stack=cfg.frame_stack, nstep=cfg.nstep, discount=cfg.discount)
         ring_bytes = len(runs) * cfg.replay_size * ReplayBuffer(1, **ring).bytes_per_transition
         buffers.append(make_replay(cfg, cfg.replay_size, **ring,
                                    device=speed.replay_device(run, device, ring_bytes)))
@@ -222,16 +230,19 @@ def update_due(frame, step, cfg: Config, samplers, buffers) -> bool:
                     for s, b in zip(samplers, buffers)))
 
 
-def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None, seeds=None, group_dir=None):
+def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=None) -> str:
     """Train the run's seeds from scratch, or on from their snapshots (one seed, or --seeds in
     lockstep); returns the run directory (a group's folder). The loop decides when to evaluate,
     snapshot and stop; the run directories write what they are handed, and turn a Ctrl-C, a
     SIGTERM or a storage error into one line."""
     with group.Runs(cfg, run, snapshot, seeds, group_dir) as runs:
         device = cli.torch_setup(run)
-        envs = runs.closing(runenvs.SeedEnvs([cli.config_dict(d.cfg, d.run) for d in runs],
-                                             METHODS[cfg.method].uses_mask, workers=group.workers(runs)))
-        source = experiment.init_source(cfg, run, envs.action_dim) if run.init_from and not snapshot else None
+        configs = [cli.config_dict(d.cfg, d.run) for d in runs]
+        uses_mask = METHODS[cfg.method].uses_mask
+        envs = runs.closing(runenvs.SeedEnvs(configs, uses_mask, workers=group.workers(runs)))
+        source = None
+        if run.init_from and not snapshot:
+            source = experiment.init_source(cfg, run, envs.action_dim)
         runs.create(f"envs in {envs.kind}; device {device}")
         agents, buffers, samplers, learner = build(runs, envs, run, device, source)
         lead, cfg, n = runs.dirs[0], runs.dirs[0].cfg, len(runs)
@@ -239,8 +250,11 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None, seeds=N
         clock = time.monotonic()
         while True:
             c = lead.counters
-            frame, final = c.step * cfg.action_repeat, c.step * cfg.action_repeat >= cfg.frames
-            if eval_due(frame, c.last_eval_frame, cfg.eval_every) or final and c.last_eval_frame != frame:
+            frame = c.step * cfg.action_repeat
+            final = frame >= cfg.frames
+            # The one evaluation site: every --eval-every frames, and at the budget's end.
+            due = eval_due(frame, c.last_eval_frame, cfg.eval_every)
+            if due or final and c.last_eval_frame < frame:
                 evaluate_and_log(agents, envs, runs)
             between = np.array([not d.counters.mid_episode for d in runs])
             if between.all() or final:
@@ -271,7 +285,8 @@ def train(cfg: Config, run: cli.RunConfig, snapshot: dict | None = None, seeds=N
 def evaluate_snapshot(cfg: Config, run: cli.RunConfig, snapshot: dict) -> None:
     """--evaluate RUN_DIR: the snapshot's agent on the run's eval env, scored and printed."""
     device = cli.torch_setup(run)
-    envs = runenvs.SeedEnvs([cli.config_dict(cfg, run)], METHODS[cfg.method].uses_mask, workers=False)
+    uses_mask = METHODS[cfg.method].uses_mask
+    envs = runenvs.SeedEnvs([cli.config_dict(cfg, run)], uses_mask, workers=False)
     try:
         agent = make_agent(cfg, envs.action_dim, device)
         experiment.score_snapshot(cfg, run, snapshot, agent, envs, evaluate)

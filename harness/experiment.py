@@ -155,7 +155,7 @@ class EvalWatch:
             panels["true mask"] = true
         decoded = {}
         if self.decodes:
-            latent = agent.encode(pixels)  # no random shift at evaluation
+            latent = agent.encoder(pixels)  # no random shift at evaluation
             decoded = agent.aux.decode(latent)
         if "mask" in decoded:
             logits = decoded["mask"][:, -1].float()

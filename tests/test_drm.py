@@ -345,7 +345,7 @@ def test_dormant_ratio_equals_the_released_cal_dormant_ratio(released):
     dormant_actor(ours.actor)
     theirs.actor.load_state_dict(ours.actor.state_dict())
     obs = torch.as_tensor(replay_batch(n=16)[0]).float()
-    latent = ours.encode(sear.random_shift(obs)).detach()
+    latent = ours.encoder(sear.random_shift(obs)).detach()
     for threshold in (0.025, 0.1, 0.5):
         want = released.utils.cal_dormant_ratio(theirs.actor, latent, 0, percentage=threshold)
         assert drm.dormant_ratio(ours.actor, latent, threshold=threshold) == want
@@ -389,7 +389,7 @@ def test_shrink_and_perturb_equals_the_released_on_the_same_rng(released):
 def test_value_step_equals_the_released_update_predictor(released):
     theirs, ours = same_weights(released, drm_cfg())
     obs = torch.as_tensor(replay_batch(n=16)[0]).float()
-    latent = ours.encode(sear.random_shift(obs)).detach()
+    latent = ours.encoder(sear.random_shift(obs)).detach()
     action = torch.rand(16, 2) * 2 - 1
     for _ in range(3):
         want = theirs.update_predictor(latent, action)["predictor_loss"]
