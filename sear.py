@@ -545,7 +545,7 @@ class ReplayBuffer:
         mask = np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1))
         self.masks[i] = torch.from_numpy(mask)
         self.actions[i] = torch.as_tensor(action)
-        self.rewards[i], self.terminal[i], self.first[i] = float(reward), terminal, first
+        self.rewards[i], self.terminal[i], self.first[i] = float(reward), bool(terminal), first
         self.t += 1
 
     def add_first(self, obs):
