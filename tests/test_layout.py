@@ -17,9 +17,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SEAR = ROOT / "sear.py"
 TRAIN = ROOT / "train.py"
-HARNESS = ("harness.cli", "harness.experiment")
+HARNESS = ("harness.cli", "harness.experiment", "harness.group", "harness.runenvs", "harness.speed")
 PACKAGES = ("harness", "methods")  # the harness (command line, run directory, speed) and the successor methods
-SEAR_LINES = 700
+SEAR_LINES = 620
 MODULES = sorted([p.stem for p in ROOT.glob("*.py")]  # the importable modules: the top level's and the packages'
                  + [f"{pkg}.{p.stem}" for pkg in PACKAGES for p in (ROOT / pkg).glob("*.py") if p.stem != "__init__"])
 
@@ -28,7 +28,8 @@ def module_path(m: str) -> Path:
     return ROOT / (m.replace(".", "/") + ".py")
 ALGORITHM_SECTIONS = range(1, 7)
 LOOP = "train"
-FUNCTION_LINES, LOOP_LINES = 60, 80  # every function outside tests; the loop (train.py's train)
+FUNCTION_LINES, LOOP_LINES = 60, 60  # every function outside tests; the loop (train.py's train)
+LINE_CHARS = 100  # sear.py's and train.py's lines, comments on lines of their own
 # Over the budget, each held at its length until it is split.
 
 
@@ -83,7 +84,7 @@ def function_lengths() -> dict[str, int]:
             for name, _, n in functions(p) if (p, name) != (TRAIN, LOOP)}
 
 
-def test_sear_py_is_at_most_700_lines_and_nine_tenths_algorithm():
+def test_sear_py_is_at_most_620_lines_and_nine_tenths_algorithm():
     b = budgets()
     assert [n for n, *_ in b["sections"]] == [0, *ALGORITHM_SECTIONS], b["sections"]
     assert b["lines"] <= SEAR_LINES, b["lines"]
@@ -230,7 +231,9 @@ def test_no_import_cycle_and_sear_on_the_ground_floor():
     # `python sear.py` and `python train.py` run train.py as __main__: nothing it imports may import a
     # second copy of it as `train`; the harness never imports the algorithm.
     assert "train" not in set().union(*(reach(m, {m}) for m in graph["train"]))
-    assert all(not {"sear", "train"} & graph[m] for m in HARNESS)
+    # the speed layer stands on sear.py (its batched update runs the agent's own methods)
+    assert all(not {"sear", "train"} & graph[m] for m in HARNESS if m != "harness.speed")
+    assert "train" not in graph["harness.speed"]
 
 
 def test_plot_sweep_and_benchmarks_take_only_algorithm_names_from_sear():
@@ -254,3 +257,34 @@ if __name__ == "__main__":
         print(f"sear.py section {n} {title}: lines {first}-{last} ({last - first + 1}, {kind})")
     for name, value in b.items():
         print(f"{name}: {value:.3f}" if isinstance(value, float) else f"{name}: {value}")
+
+
+def test_sear_and_train_read_in_lines_of_100_characters_with_comments_on_their_own():
+    import io
+    import tokenize
+    for path in (SEAR, TRAIN):
+        src = path.read_text()
+        lines = src.splitlines()
+        assert [i for i, line in enumerate(lines, 1) if len(line) > LINE_CHARS] == [], path.name
+        trailing = [tok.start[0] for tok in tokenize.generate_tokens(io.StringIO(src).readline)
+                    if tok.type == tokenize.COMMENT and lines[tok.start[0] - 1][:tok.start[1]].strip()]
+        assert trailing == [], (path.name, trailing)
+
+
+def test_sear_py_is_the_pytorch_every_reader_knows():
+    """No call into torch's private API (torch._dynamo, torch._inductor, torch._C, torch._foreach_*) and
+    no optimiser class of its own: torch.optim.Adam, stepped with zero_grad / backward / step."""
+    src = SEAR.read_text()
+    assert re.findall(r"torch\._[a-zA-Z]", src) == []
+    tree = ast.parse(src)
+    optimisers = [n.name for n in tree.body if isinstance(n, ast.ClassDef)
+                  and any("Optimizer" in ast.unparse(b) or "Adam" in ast.unparse(b) for b in n.bases)]
+    assert optimisers == []
+    assert src.count("torch.optim.Adam(") == 2 and ".backward(" in src and ".zero_grad(" in src
+
+
+def test_the_loop_evaluates_at_one_site_and_stops_at_one_point():
+    loop = next(n for n in ast.parse(TRAIN.read_text()).body if isinstance(n, ast.FunctionDef) and n.name == LOOP)
+    calls = [n.func for n in ast.walk(loop) if isinstance(n, ast.Call)]
+    names = [f.id if isinstance(f, ast.Name) else f.attr for f in calls if isinstance(f, (ast.Name, ast.Attribute))]
+    assert names.count("evaluate_and_log") == 1 and names.count("safe_point") == 1
