@@ -86,13 +86,14 @@ def pytest_collection_modifyitems(config, items):
 
 class FileProgress:
     """After the last test of each file: `[ 3/26] tests/test_cli.py: 38 passed in 1 min 37 s (63/565
-    tests, 4 min 2 s so far)`, the counts as pytest's summary counts them. Lines of their own between
-    -q's dots; the summary and the exit code stay pytest's."""
+    tests, 4 min 2 s so far)`, the files numbered in the order they finish, the counts as pytest's
+    summary counts them. Lines of their own between -q's dots; the summary and the exit code stay
+    pytest's."""
 
     def __init__(self, config):
         self.config = config
         self.left, self.counts, self.began, self.files = {}, {}, {}, []
-        self.done = self.total = 0
+        self.done = self.total = self.finished = 0  # tests done, tests in all, files finished
         self.pending = None
         self.start = time.monotonic()
 
@@ -153,7 +154,8 @@ class FileProgress:
         said = ", ".join(f"{counts[word]} {word}" for word in order) or "nothing run"
         now = time.monotonic()
         width = len(str(len(self.files)))
-        return (f"[{self.files.index(path) + 1:{width}d}/{len(self.files)}] {path}: {said} in "
+        self.finished += 1
+        return (f"[{self.finished:{width}d}/{len(self.files)}] {path}: {said} in "
                 f"{minutes(now - self.began.get(path, now))} ({self.done}/{self.total} tests, "
                 f"{minutes(now - self.start)} so far)")
 

@@ -73,3 +73,22 @@ def test_a_line_per_finished_file_between_the_dots_and_pytests_summary_unchanged
     # -q's dots and its [100%] stay on lines of their own, before each file's line.
     assert lines[ours[0] - 1] == "..s" and re.fullmatch(r"FE +\[100%\]", lines[ours[1] - 1]), r.stdout
     assert re.fullmatch(r"1 failed, 2 passed, 1 skipped, 1 error in [\d.]+s", lines[-1]), r.stdout
+
+
+def test_files_are_numbered_in_the_order_they_finish_under_two_workers(tmp_path):
+    """With -n 2 the files finish out of their alphabetical order: each line's [k/N] counts the files
+    finished so far, so k rises line by line, and its tests-so-far count never goes down."""
+    (tmp_path / "test_a.py").write_text("import time\ndef test_slow(): time.sleep(3)\n")
+    for name in "bcd":
+        (tmp_path / f"test_{name}.py").write_text("def test_fast(): pass\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.conftest",
+                        "-n", "2", "test_a.py", "test_b.py", "test_c.py", "test_d.py"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    lines = [line for line in r.stdout.splitlines() if line.startswith("[")]
+    assert [int(re.match(r"\[(\d+)/4\]", line)[1]) for line in lines] == [1, 2, 3, 4], r.stdout
+    done = [int(re.search(r"\((\d+)/4 tests", line)[1]) for line in lines]
+    assert done == sorted(done), r.stdout
+    # the slow first file finishes after another: alphabetical numbers would have gone 2, 3, 1, ...
+    assert lines[0].split()[1] != "test_a.py:", r.stdout
