@@ -325,18 +325,40 @@ def test_resume_refuses_to_change_the_experiment(tmp_path):
     assert tree_digest(run_dir) == before
 
 
-@pytest.mark.parametrize("env_name", ["walker-walk-distracting", "metaworld-door-open", "kitchen-kettle", "adroit-door"])
-def test_smoke_run_on_every_suite(env_name, tmp_path):
-    r = run(["--env", env_name, *TINY, "--frames", "16", "--seed-frames", "8", "--eval-every", "100",
-             "--max-episode-steps", "4"], tmp_path)  # an episode ends before the last step: updates run
+SUITES = ["walker-walk-distracting", "metaworld-door-open", "kitchen-kettle", "adroit-door"]
+EVERY_SUITE = """
+import contextlib, io, json, sys
+import train
+said = {}
+for name, root in json.loads(sys.argv[1]):
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = train.main(["--run-root", root, "--env", name, *json.loads(sys.argv[2])])
+    said[name] = [code, err.getvalue()]
+print(json.dumps(said))
+"""
+
+
+def test_smoke_run_on_every_suite(tmp_path):
+    """One run of every rendering suite (an episode ends before the last step: updates run), the four
+    in one process (one start of torch and MuJoCo)."""
+    args = [*TINY, "--frames", "16", "--seed-frames", "8", "--eval-every", "100", "--max-episode-steps", "4"]
+    roots = [(name, str(tmp_path / name)) for name in SUITES]
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-c", EVERY_SUITE, json.dumps(roots), json.dumps(args)], capture_output=True,
+                       text=True, timeout=900, cwd=tmp_path, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
-    run_dir = only_run_dir(tmp_path)
-    train = rows(run_dir / "train.csv")
-    assert train and train[-1]["mask_loss"] != ""
-    if not env_name.endswith("distracting"):  # the manipulation suites report success
-        assert "success" in train[0] and "success" in rows(run_dir / "eval.csv")[0]
-    # Without --backgrounds, every Distracting Control run says its backgrounds are not the paper's.
-    assert ("not the paper's DAVIS-2017 videos" in r.stderr) == env_name.endswith("distracting"), r.stderr
+    said = json.loads(r.stdout.strip().splitlines()[-1])
+    for name in SUITES:
+        code, err = said[name]
+        assert code == 0, (name, err[-2000:])
+        (run_dir,) = (tmp_path / name).iterdir()
+        train = rows(run_dir / "train.csv")
+        assert train and train[-1]["mask_loss"] != ""
+        if not name.endswith("distracting"):  # the manipulation suites report success
+            assert "success" in train[0] and "success" in rows(run_dir / "eval.csv")[0]
+        # Without --backgrounds, every Distracting Control run says its backgrounds are not the paper's.
+        assert ("not the paper's DAVIS-2017 videos" in err) == name.endswith("distracting"), (name, err)
 
 
 def straight_and_resumed(common, tmp_path):
