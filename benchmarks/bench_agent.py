@@ -36,6 +36,8 @@ from torch.utils.flop_counter import FlopCounterMode
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from harness import cli  # noqa: E402
 from harness import experiment  # noqa: E402
+from harness import runenvs  # noqa: E402
+from harness import speed  # noqa: E402
 import sear  # noqa: E402
 import train  # noqa: E402
 
@@ -132,10 +134,14 @@ def device_batch(batch, device):
 
 
 def make_agent(method, precision, batch_size, device="cpu", action_dim=6):
-    """method: a sear.py method, or METHOD+drm for it with --drm."""
+    """method: a sear.py method, or METHOD+drm for it with --drm; precision bf16 set on its networks
+    as a run sets it (speed.bf16)."""
     method, drm_flag = cli.split_method_label(method)
     cfg = train.Config(method=method, batch_size=batch_size, action_repeat=2, precision=precision, drm=bool(drm_flag))
-    return train.make_agent(cfg, action_dim, torch.device(device))
+    agent = train.make_agent(cfg, action_dim, torch.device(device))
+    if precision == "bf16":
+        speed.bf16(agent)
+    return agent
 
 
 def time_updates(agent, batch, updates):
@@ -242,6 +248,8 @@ def step_split(args):
     train_env, eval_env = runenvs.make_envs(cfg, sear.METHODS[cfg.method].uses_mask)
     eval_env.close()
     agent = train.make_agent(cfg, train_env.action_space.shape[0], torch.device(args.device))
+    if cfg.precision == "bf16":
+        speed.bf16(agent)
     buffer = sear.ReplayBuffer(cfg.replay_size, (3, 84, 84), train_env.action_space.shape[0], cfg.frame_stack,
                                cfg.nstep, cfg.discount)
     rng = np.random.default_rng(0)
@@ -251,7 +259,7 @@ def step_split(args):
     step, timed = 0, 0
     while timed < args.split_steps:
         t0 = time.perf_counter()
-        action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False)
+        action = agent.act(obs["pixels"], obs["mask"], step, eval_mode=False).cpu().numpy()
         t1 = time.perf_counter()
         obs, reward, terminated, truncated, _ = train_env.step(action)
         buffer.add(action, reward, terminated, obs)
@@ -371,7 +379,8 @@ def compile_comparison(args):
             agent = make_agent(method, precision, args.batch_size, args.device, args.action_dim)
             agent.load_state_dict(eager.state_dict())
             try:
-                agent.compile()
+                graph = "on" if cuda else "off"
+                speed.speed_up(agent, cli.RunConfig(compile="on", cuda_graph=graph), agent.device)
                 start = time.perf_counter()
                 for step in (5_000, 5_002):
                     agent.update(device_batch(batch, args.device), step)
@@ -455,6 +464,9 @@ def run_agents(args):
     agents["trained, state copied"].load_state_dict(copy.deepcopy(snapshot["agent"]))
     torch.manual_seed(0)
     agents["fresh"] = train.make_agent(cfg, action_dim, device)
+    if cfg.precision == "bf16":  # as the run's learner sets it (speed.Learner)
+        for agent in agents.values():
+            speed.bf16(agent)
     path = os.path.join(args.snapshot, "buffer.npz")
     rng = np.random.default_rng(0)
     if snapshot.get("buffer_saved") and os.path.exists(path):

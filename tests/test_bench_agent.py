@@ -1,6 +1,7 @@
 """benchmarks/bench_agent.py: --snapshot's settings (the flush-denormal contender and the malloc it names),
 --profile's CUDA summary on fake profiler events, and what it does on a CPU without native bf16."""
 import argparse
+import functools
 import sys
 import types
 from pathlib import Path
@@ -140,3 +141,18 @@ def test_the_benchmark_without_native_bf16_times_no_bf16(monkeypatch, capsys):
     out = capsys.readouterr().out
     assert out.startswith("bf16: skipped") and "bf16" not in out.split("\n", 1)[1]
     assert "| drq | fp32 |" in out
+
+
+def test_a_bf16_agent_runs_its_conv_networks_under_autocast_as_a_run_does(monkeypatch):
+    """make_agent's bf16 agent is the run's (speed.bf16 on its encoder and decoders), not an fp32
+    agent with a bf16 label."""
+    tiny = functools.partial(bench_agent.train.Config, latent_dim=64, hidden_dim=32, feature_dim=16)
+    monkeypatch.setattr(bench_agent.train, "Config", tiny)
+    bf16, fp32 = (bench_agent.make_agent("sear", p, 2) for p in ("bf16", "fp32"))
+    assert "forward" in vars(bf16.encoder) and "forward" in vars(bf16.aux)
+    assert "forward" not in vars(fp32.encoder)
+    seen = []
+    conv = next(m for m in bf16.encoder.modules() if isinstance(m, torch.nn.Conv2d))
+    conv.register_forward_hook(lambda m, i, out: seen.append(out.dtype))
+    latent = bf16.encoder(torch.zeros(2, 9, 84, 84))
+    assert seen == [torch.bfloat16] and latent.dtype == torch.float32
