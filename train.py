@@ -262,7 +262,9 @@ def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=
                 runs.safe_point()
                 if final:
                     break
-                if time.monotonic() - clock >= 60 * run.snapshot_minutes:
+                # every --snapshot-minutes, at an episode's end (not where the run starts)
+                fresh = frame in (0, lead.files.snapshot_frame)
+                if not fresh and time.monotonic() - clock >= 60 * run.snapshot_minutes:
                     runs.snapshot()
                     clock = time.monotonic()
             if between.any():

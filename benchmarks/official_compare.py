@@ -203,7 +203,7 @@ def compare_policy(args):
                     with torch.no_grad():
                         pixels = torch.as_tensor(obs["pixels"]).float().unsqueeze(0)
                         mask = None if obs["mask"] is None else torch.as_tensor(obs["mask"]).float().unsqueeze(0)
-                        dist = agent.actor(agent.encode(pixels), sample_std)
+                        dist = agent.actor(agent.encoder(pixels), sample_std)
                         action = dist.sample(clip=None).squeeze(0).numpy().astype(np.float32)
                 actions[-1].append(action)
                 obs, reward, terminated, truncated, _ = env.step(action)

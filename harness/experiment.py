@@ -1131,7 +1131,7 @@ class RunDir:
         self.agent = self.buffer = self.sample_rng = None  # what a snapshot saves, from start()
         self.watch = None  # the evaluation under way (start_eval)
         self.low_iou = None  # the learned masks' IoU over evaluations (segment.IoUWatch), if measured
-        if cfg.mask_source != "sim" and cfg.learned_mask_iou:
+        if getattr(cfg, "mask_source", "sim") != "sim" and cfg.learned_mask_iou:
             import segment
             self.low_iou = segment.IoUWatch()
         self.cut = ""  # what a SIGTERM cut short: said when the run stops

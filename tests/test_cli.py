@@ -421,8 +421,8 @@ def test_training_loop_gives_the_agent_agent_steps(tmp_path, monkeypatch, action
     monkeypatch.setattr(sear.ReplayBuffer, "add", lambda self, action, *rest: (
         seen["actions"].append(np.array(action)), add(self, action, *rest))[1])
     # Acting (clip None), the actor's sample is a constant: an action equal to it came from the actor.
-    monkeypatch.setattr(sear.TruncatedNormal, "sample", lambda self, clip=None: (
-        torch.full_like(self.loc, 0.125) if clip is None else sample(self, clip)))
+    monkeypatch.setattr(sear.TruncatedNormal, "sample", lambda self, clip=None, noise=None: (
+        torch.full_like(self.loc, 0.125) if clip is None else sample(self, clip, noise)))
     cfg, run, _ = cli.parse_args(["--env", "cartpole-swingup", "--method", "drq", "--action-repeat",
                                   str(action_repeat), "--run-root", str(tmp_path / "runs"), "--threads", "1",
                                   *tiny("drq"),
