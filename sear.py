@@ -250,7 +250,7 @@ class AuxLoss(nn.Module):
         return cls(cfg, encoder, critic)
 
     def forward(self, latent, obs_aug, mask_aug, **extra):
-        return latent.new_zeros(()), {}
+        return 0.0, {}
 
     def decode(self, latent) -> dict:
         return {}
@@ -484,10 +484,10 @@ class Agent:
         a method's own step (CURL's, last as curl_sac.py's). `step`: a float64 0-d tensor."""
         batch = type(batch)._make(None if x is None else x.float() for x in batch)
         latent, metrics = self.update_critic(batch, step, noise)
-        metrics.update(self.update_actor(latent, metrics["expl_std"], noise.actor))
+        metrics = metrics | self.update_actor(latent, metrics["expl_std"], noise.actor)
         polyak(self.critic, self.critic_target, self.cfg.critic_tau)
         if self.aux is not None:
-            metrics.update(self.aux.after_update(batch.obs, self.rng))
+            metrics = metrics | self.aux.after_update(batch.obs, self.rng)
         return metrics
 
     PARTS = ("encoder", "actor", "critic", "critic_target", "model_opt", "actor_opt", "aux")

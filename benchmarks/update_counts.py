@@ -32,10 +32,11 @@ or from autograd's threads while `agent.update(batch, step)` runs:
              (about 43 MB at batch 256), 0 once the replay hands it tensors on the device.
 
 The counts do not depend on the batch size or the networks' widths (the same ops run on larger
-tensors); they depend on the method and its flags (sear.Adam steps all of an optimiser's parameters with
-one foreach op per term). CURL steps its key encoder every second update: the CLI counts two consecutive
-updates and shows the larger. A compiled update's fused kernels are not aten ops: these counts are of
-the eager update.
+tensors); they depend on the method and its flags (torch's fused Adam steps all of an optimiser's
+parameters with one `_fused_adam_`; the Polyak step of the target critic is one `lerp_` per
+parameter). CURL steps its key encoder every second update: the CLI counts two consecutive updates
+and shows the larger. A compiled update's fused kernels are not aten ops: these counts are of the
+plain update.
 """
 import argparse
 import contextlib
@@ -219,7 +220,7 @@ def count_update(agent, batch, step, warmup: int = 1) -> Counts:
 
 # --- agents and batches ---------------------------------------------------------------------------
 def make_agent(method_label, cfg_overrides, device):
-    """An agent of a method label of sear.METHODS, or METHOD+drm for it with DrM (drm.DrMAgent), as
+    """An agent of a method label of train.METHODS, or METHOD+drm for it with DrM (drm.DrMAgent), as
     train.py builds it."""
     method, drm_flags = cli.split_method_label(method_label)
     cfg = train.Config(method=method, drm=bool(drm_flags), **cfg_overrides)
@@ -227,7 +228,7 @@ def make_agent(method_label, cfg_overrides, device):
 
 
 def default_methods() -> list:
-    return [*sear.METHODS, "drq" + cli.DRM_SUFFIX, "sear" + cli.DRM_SUFFIX]
+    return [*train.METHODS, "drq" + cli.DRM_SUFFIX, "sear" + cli.DRM_SUFFIX]
 
 
 def count_method(label, overrides, batch_size, device="cpu") -> Counts:
@@ -255,7 +256,7 @@ def misses(label: str, c: Counts) -> list:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--methods", nargs="+", default=default_methods(),
-                   choices=[m + d for d in ("", cli.DRM_SUFFIX) for m in sear.METHODS])
+                   choices=[m + d for d in ("", cli.DRM_SUFFIX) for m in train.METHODS])
     p.add_argument("--batch-size", type=int, default=8, help="the counts do not depend on it (the H2D bytes do)")
     p.add_argument("--top", type=int, default=15, help="ops listed per method, most dispatched first (0: none)")
     p.add_argument("--check", action="store_true", help="exit 1 when a method misses a target "

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import sear
-from methods import baselines
+from methods import baselines, foresight
 import train
 from tests.test_cli import only_run_dir, run, tiny
 
@@ -30,15 +30,28 @@ def numpy_batch(n=8, action_dim=2, seed=0):
             rng.normal(size=(n, 1)).astype(np.float32), np.full((n, 1), 0.97, np.float32), frames, masks)
 
 
-@pytest.mark.parametrize("method", list(sear.METHODS))
+def agent_of(method, device, **kw):
+    """A tiny agent of any --method, as train.py builds it (EF's agent for ef)."""
+    return train.make_agent(tiny_cfg(method, **kw), action_dim=2, device=device)
+
+
+@pytest.mark.parametrize("method", list(train.METHODS))
 def test_every_method_builds_acts_and_updates(method, device):
-    agent = sear.Agent(tiny_cfg(method), action_dim=2, device=device)
+    agent = agent_of(method, device)
     batch = numpy_batch()
     a = agent.act(batch[0][0], batch[1][0], step=10**6, eval_mode=True)
-    assert a.shape == (2,) and np.all(np.abs(a) <= 1)
+    assert a.shape == (2,) and a.device.type == device.type and bool((a.abs() <= 1).all())
     metrics = agent.update(batch, step=10**5)
     assert set(agent.metric_names) == set(metrics)
-    assert all(np.isfinite(v) for v in metrics.values())
+    assert all(bool(torch.isfinite(torch.as_tensor(v))) for v in metrics.values())
+
+
+def test_the_methods_table_is_sears_and_the_modules_rows():
+    """train.METHODS puts every module's own rows side by side; sear.py's holds its two alone."""
+    assert list(sear.METHODS) == ["sear", "drq"]
+    assert train.METHODS == {**sear.METHODS, **baselines.METHODS, **foresight.METHODS}
+    assert set(train.METHODS) == {"sear", "drq", "ae", "mae", "curl", "rgbm", "sear-nosplit",
+                                  "dear", "ef"}
 
 
 @pytest.mark.parametrize("method, terms", [("sear", ["recon_loss", "mask_loss"]), ("sear-nosplit", ["recon_loss", "mask_loss"]),
@@ -46,7 +59,7 @@ def test_every_method_builds_acts_and_updates(method, device):
                                            ("dear", ["mask_loss"])])
 def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
     torch.manual_seed(0)
-    agent = sear.Agent(tiny_cfg(method, lr=1e-3), action_dim=2, device=device)
+    agent = agent_of(method, device, lr=1e-3)
     batch = numpy_batch(n=4, seed=1)
     history = {t: [] for t in terms}
     for _ in range(40):
@@ -54,7 +67,8 @@ def test_auxiliary_loss_decreases_on_a_fixed_batch(method, terms, device):
         for t in terms:
             history[t].append(m[t])
     for t in terms:
-        first, last = np.mean(history[t][:5]), np.mean(history[t][-5:])
+        values = [float(v) for v in history[t]]
+        first, last = np.mean(values[:5]), np.mean(values[-5:])
         assert last < 0.8 * first, f"{method} {t}: {first:.3f} -> {last:.3f}"
 
 
@@ -82,15 +96,24 @@ def test_mae_hides_the_requested_fraction_and_scores_only_hidden_pixels(device):
 
 
 def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame(device):
-    agent = sear.Agent(tiny_cfg("rgbm"), action_dim=2, device=device)
-    assert agent.encoder.convs[0].in_channels == 12
+    agent = agent_of("rgbm", device)
+    assert isinstance(agent, baselines.RGBMAgent) and agent.encoder.convs[0].in_channels == 12
     pixels = torch.rand(2, 9, 84, 84, device=device) * 255
     mask = (torch.rand(2, 3, 84, 84, device=device) > 0.5).float()
-    x = agent.encoder_input(pixels, mask)
+    x = baselines.with_masks(pixels, mask)
     assert x.shape == (2, 12, 84, 84)
     for f in range(3):
         assert torch.equal(x[:, 4 * f:4 * f + 3], pixels[:, 3 * f:3 * f + 3])
         assert torch.equal(x[:, 4 * f + 3], mask[:, f] * 255)
+    seen = []  # what the encoder reads: when acting, and in the update (shifted with its mask)
+    agent.encoder.register_forward_pre_hook(lambda module, args: seen.append(args[0]))
+    agent.act(pixels[0], mask[0], step=0, eval_mode=True)
+    assert torch.equal(seen[-1], x[:1])
+    zeros = torch.zeros(2, 1, device=device)
+    batch = sear.Batch(pixels, mask, zeros.repeat(1, 2), zeros, zeros + 1, pixels, mask)
+    noise = agent.draw(2)
+    agent.critic_objective(batch, torch.zeros((), dtype=torch.float64, device=device), noise)
+    torch.testing.assert_close(seen[-2], sear.random_shift(x, noise.shift))  # obs; next_obs last
     with pytest.raises(ValueError, match="needs the robot mask"):
         agent.act(pixels[0].cpu().numpy(), None, step=0, eval_mode=True)
 
@@ -98,7 +121,7 @@ def test_rgbm_sees_twelve_channels_with_the_mask_after_each_frame(device):
 @pytest.mark.parametrize("method, split", [("sear", True), ("sear-nosplit", False)])
 def test_decoder_inputs_split_or_not(method, split, device):
     cfg = tiny_cfg(method)
-    agent = sear.Agent(cfg, action_dim=2, device=device)
+    agent = agent_of(method, device)
     seen = {}
     agent.aux.recon_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("recon", i[0]))
     agent.aux.mask_decoder.fc.register_forward_hook(lambda m, i, o: seen.__setitem__("mask", i[0]))
@@ -112,7 +135,7 @@ def test_decoder_inputs_split_or_not(method, split, device):
         assert torch.equal(seen["recon"], latent) and torch.equal(seen["mask"], latent)
 
 
-@pytest.mark.parametrize("method", [m for m in sear.METHODS if m != "sear"])  # sear: test_cli.py
+@pytest.mark.parametrize("method", [m for m in train.METHODS if m != "sear"])  # sear: test_cli.py
 def test_cli_smoke_run_per_method(method, tmp_path):
     extra = ["--mask-noise", "0.2"] if method in ("rgbm", "sear-nosplit") else []  # noise combines with mask users
     r = run(["--env", "walker-walk", "--method", method, *tiny(method), "--frames", "32", "--eval-every", "100", *extra],

@@ -8,18 +8,22 @@ import io
 import pytest
 import torch
 
-from methods import baselines
 from harness import experiment
 import sear
 from tests import reference
-from tests.test_baselines import numpy_batch, tiny_cfg
-from tests.test_sear import captured_grads
+from tests.test_baselines import agent_of, numpy_batch
+from tests.test_sear import grads
 
 RELEASED_COMMIT = "8416d6e"  # the commit docs/baselines.md describes
 
 
 def curl_agent(device, **kw):
-    return sear.Agent(tiny_cfg("curl", **kw), action_dim=2, device=device)
+    return agent_of("curl", device, **kw)
+
+
+def stepped(opt):
+    """The parameters an optimiser steps, in its order."""
+    return [p for group in opt.param_groups for p in group["params"]]
 
 
 def obs_batch(device, n=8, seed=0):
@@ -53,7 +57,7 @@ def test_the_key_follows_by_ema_every_second_update_only(device):
             p.add_(1.0)
     for update in range(5):
         online, key = snapshot(aux.query[0]), snapshot(aux.key)
-        aux.after_update(obs)
+        aux.after_update(obs, agent.rng)
         for o, k_before, k in zip(online, key, aux.key.parameters()):
             expected = k_before + agent.cfg.curl_tau * (o - k_before) if update % 2 == 0 else k_before
             torch.testing.assert_close(k, expected, msg=f"update {update}")
@@ -65,16 +69,16 @@ def test_curl_is_its_own_adam_step_after_the_update_not_a_term_of_eq6(device):
     aux, batch = agent.aux, numpy_batch()
     torch_batch = sear.Batch._make(torch.as_tensor(x, device=device).float() for x in batch)
     W = aux.W.detach().clone()
-    _, metrics = agent.update_critic(torch_batch, step=10**5)  # the joint step (Eq. 6): no CURL term
+    # the joint step (Eq. 6): no CURL term
+    _, metrics = agent.update_critic(torch_batch, 10**5, agent.draw(8))
     assert "curl_loss" not in metrics and torch.equal(aux.W, W)
     online = snapshot(aux.query[0])
-    grads = captured_grads(aux.opt)
-    metrics = aux.after_update(torch_batch.obs)
+    metrics = aux.after_update(torch_batch.obs, agent.rng)
     assert metrics["curl_loss"] > 0
     # Adam's first step moves each parameter by its learning rate (m / sqrt(v) = sign of the gradient):
     # W by --curl-lr, the encoder and feature by twice that (curl_sac.py's encoder_ and cpc_optimizer)
     torch.testing.assert_close((aux.W - W).abs(), torch.full_like(W, 1e-3), rtol=1e-3, atol=0)
-    for before, p, grad in zip(online, aux.query[0].parameters(), grads[0]):
+    for before, p, grad in zip(online, aux.query[0].parameters(), grads(stepped(aux.opt))):
         moved = (p - before).abs()[grad.abs() > 1e-4]  # where eps = 1e-8 is negligible
         torch.testing.assert_close(moved, torch.full_like(moved, 2e-3), rtol=1e-3, atol=0)
     # and in the agent's update it comes last, after the actor's step (curl_sac.py's order)
@@ -82,12 +86,13 @@ def test_curl_is_its_own_adam_step_after_the_update_not_a_term_of_eq6(device):
     update_actor = agent.update_actor
     agent.update_actor = lambda *a: (order.append("actor"), update_actor(*a))[1]
     after = aux.after_update
-    aux.after_update = lambda obs: (order.append("curl"), after(obs))[1]
+    aux.after_update = lambda obs, rng: (order.append("curl"), after(obs, rng))[1]
     assert "curl_loss" in agent.update(batch, step=10**5) and order == ["actor", "curl"]
 
 
 def test_a_restored_agent_continues_exactly(device):
-    """The key's EMA phase and CURL's own Adam are saved with the agent (a snapshot, --resume)."""
+    """The key's EMA phase, CURL's own Adam and the generator its shifts come from are saved with
+    the agent (a snapshot, --resume)."""
     torch.manual_seed(0)
     a = curl_agent(device)
     for i in range(3):
@@ -98,7 +103,6 @@ def test_a_restored_agent_continues_exactly(device):
     b.load_state_dict(torch.load(io.BytesIO(buffer.getvalue()), weights_only=False))
     assert b.aux.updates == 3 and len(b.aux.opt.state) == len(a.aux.opt.state) > 0
     for agent in (a, b):
-        torch.manual_seed(1)
         for i in range(3, 5):
             agent.update(numpy_batch(seed=i), step=10**5)
     for name in ("encoder", "critic", "actor", "aux"):
@@ -188,17 +192,15 @@ def test_same_loss_gradients_and_weights_as_the_reference(curl_sac, monkeypatch)
     log = Log()
     for step in range(4):
         obs = obs_batch(device, seed=step)
-        anchor, positive = sear.random_shift(obs), sear.random_shift(obs)
-        views = [anchor, positive]
-        monkeypatch.setattr(baselines, "random_shift", lambda x: views.pop(0))  # ours draws anchor, then positive
-        grads = captured_grads(aux.opt)
-        mine = aux.after_update(obs)
-        monkeypatch.undo()
-        monkeypatch.setattr(curl_sac, "make_encoder", lambda *a, **k: None)
+        # ours draws the anchor's shift, then the positive's
+        rng, size = torch.Generator().manual_seed(step), (len(obs), 1, 1, 2)
+        shifts = [torch.randint(0, 9, size, generator=rng, dtype=obs.dtype) for _ in range(2)]
+        anchor, positive = (sear.random_shift(obs, shift) for shift in shifts)
+        mine = aux.after_update(obs, torch.Generator().manual_seed(step))
         theirs.update(Replay(anchor, positive), log, step)
         assert mine["curl_loss"] == pytest.approx(log.curl[-1], rel=1e-5)
         theirs_params = [*theirs.critic.encoder.net.parameters(), theirs.CURL.W]  # in our Adam's order
-        for go, pt in zip(grads[0], theirs_params, strict=True):
+        for go, pt in zip(grads(stepped(aux.opt)), theirs_params, strict=True):
             torch.testing.assert_close(go, pt.grad, rtol=1e-4, atol=1e-6, msg=lambda m: f"gradient, update {step}: {m}")
     # Adam moves a weight by about its learning rate whatever the gradient's size, so a gradient that rounding
     # alone sets (near 0: one Adam at 2 x lr against two at lr, lerp against their soft update) can move a

@@ -16,8 +16,8 @@ import sear
 import sweep
 import train
 from tests import reference
-from tests.test_baselines import numpy_batch, tiny_cfg
-from tests.test_sear import captured_grads
+from tests.test_baselines import agent_of, numpy_batch, tiny_cfg
+from tests.test_sear import grads
 
 RELEASED_COMMIT = "a2885d9"  # the commit docs/dear.md describes
 FILES = ["dear/agents/dear_mask_decoder.py", "dear/utils.py", *(f"dear/models/{m}.py" for m in (
@@ -84,7 +84,7 @@ def test_the_cosine_term_trains_z_r_alone_and_the_mask_trains_z_r(feature):
 
 
 def test_dear_has_the_mask_decoder_and_no_reconstruction(device):
-    agent = sear.Agent(tiny_cfg("dear"), action_dim=2, device=device)
+    agent = agent_of("dear", device)
     assert agent.aux.recon_decoder is None and agent.aux.decodes == ("mask",)
     assert {n.split(".")[0] for n, _ in agent.aux.named_parameters()} == {"mask_decoder"}
     assert agent.aux.mask_decoder.fc[0].in_features == 32  # half of --latent-dim 64
@@ -94,19 +94,19 @@ def test_dear_has_the_mask_decoder_and_no_reconstruction(device):
 
 
 def test_the_actor_loss_never_reaches_the_encoder(device):
-    agent = sear.Agent(tiny_cfg("dear"), action_dim=2, device=device)
+    agent = agent_of("dear", device)
     batch = sear.Batch._make(torch.as_tensor(x, device=device).float() for x in numpy_batch())
-    latent, _ = agent.update_critic(batch, step=10**5)
+    noise = agent.draw(len(batch.obs))
+    latent, _ = agent.update_critic(batch, 10**5, noise)
     encoder = copy.deepcopy(agent.encoder.state_dict())
-    grads = captured_grads(agent.actor_opt)
-    agent.update_actor(latent, agent.std(10**5))
+    agent.update_actor(latent, agent.std(10**5), noise.actor)
     assert latent.grad_fn is None and all(torch.equal(v, agent.encoder.state_dict()[k]) for k, v in encoder.items())
-    assert any(g.any() for g in grads[0])
+    assert any(g.any() for g in grads(agent.actor.parameters()))
 
 
 # ---------------------------------------------------------------- flags, coefficients, sweeps
 def parse(*argv):
-    return cli.parse_args(["--env", "walker-walk", *argv], train.Config, sear.METHODS)[0]
+    return cli.parse_args(["--env", "walker-walk", *argv], train.Config, train.METHODS)[0]
 
 
 @pytest.mark.parametrize("recipe", ["paper", "authors"])
@@ -186,7 +186,7 @@ def tensors(module):
 def test_same_losses_gradients_and_weights_as_the_released_agent(released, feature):
     cfg = tiny_cfg("dear", std_steps=100_000, recon_coef=1.0, mask_coef=0.25, dear_feature=feature)
     torch.manual_seed(0)
-    ours = sear.Agent(cfg, action_dim=2, device=torch.device("cpu"))
+    ours = train.make_agent(cfg, action_dim=2, device=torch.device("cpu"))
     theirs = released_agent(released, cfg, feature)
     with torch.no_grad():  # their networks get our weights, tensor by tensor in order
         for name, t, o in pairs(theirs, ours):
@@ -206,10 +206,12 @@ def test_same_losses_gradients_and_weights_as_the_released_agent(released, featu
         batch = numpy_batch(n=8, seed=update)
         obs, mask, action, reward, discount, next_obs, _ = batch
         step = 10_000 + 2 * update  # an update step (update_every 2); the std has decayed somewhat
-        torch.manual_seed(update)  # the same shifts and action noise, drawn in the same order
-        grads, actor_grads = captured_grads(ours.model_opt), captured_grads(ours.actor_opt)
+        ours.rng.manual_seed(update)  # the same shifts and action noise, drawn in the same order
         mine = ours.update(batch, step)
-        grad = dict(zip([*ours.model_opt.params, *ours.actor_opt.params], grads[0] + actor_grads[0], strict=True))
+        stepped = [p for opt in (ours.model_opt, ours.actor_opt) for g in opt.param_groups
+                   for p in g["params"]]
+        # each step's gradient, left on .grad
+        grad = dict(zip(stepped, grads(stepped), strict=True))
         torch.manual_seed(update)
         replay = iter([({"pixels": obs, "segmentation": mask}, action, reward, discount, {"pixels": next_obs})])
         their = theirs.update(replay, step)

@@ -34,7 +34,7 @@ def snapshot(run_dir):
 
 # ----------------------------------------------------------------------------------- the ETA
 def test_the_eta_counts_only_the_updates_and_evaluations_it_has_timed(capsys):
-    from harness import experiment, runenvs
+    from harness import experiment
     now, frame = [0.0], [0]
     p = experiment.Progress(total=100_000, every=0, eval_every=10_000, clock=lambda: now[0])
 
@@ -174,7 +174,7 @@ def test_a_collapsed_actor_is_warned_of_once_and_the_recorded_healthy_runs_are_n
     mean action at the bound, spread below 4e-9) is warned of; our DrQ seed 2 at 8k-16k frames (97-99%
     saturated but spread 0.15-0.25; it recovered), seed 3 solving the task bang-bang (22-44% / 0.83-0.89)
     and SEAR's early phase (one action in every state, none at the bound; it recovered) are not."""
-    from harness import experiment, runenvs
+    from harness import experiment
     window = experiment.Health.COLLAPSE_WINDOW
     health = experiment.Health(discount=0.99)
     fired = [health.check({"actor_saturated": 1.0, "action_spread": 3e-9, "q": 20.0}) for _ in range(window + 50)]
@@ -188,7 +188,7 @@ def test_a_collapsed_actor_is_warned_of_once_and_the_recorded_healthy_runs_are_n
 
 
 def test_a_diverging_critic_is_warned_of_against_the_largest_return_any_policy_can_have():
-    from harness import experiment, runenvs
+    from harness import experiment
     window = experiment.Health.DIVERGE_WINDOW
     health = experiment.Health(discount=0.99)
     health.see_rewards(np.array([0.0, 2.0, 1.5]))  # cartpole at action repeat 2: at most 2 per agent step

@@ -84,30 +84,20 @@ def test_eval_watch_scores_and_films_what_a_method_has(tmp_path, method, scores,
     pytest.importorskip("imageio_ffmpeg", reason="films need imageio-ffmpeg (requirements.txt; sear.py checks it at start)")
     import imageio.v2 as imageio
     cfg = train.Config(method=method, frame_stack=3, latent_dim=64, hidden_dim=32)
-    agent = sear.Agent(cfg, 2, device)
+    agent = train.make_agent(cfg, 2, device)
 
-    class Env:  # the two calls evaluate() makes; a moving square to film, on the robot's mask
-        t = 0
+    def obs(t):  # a moving square to film, on the robot's mask
+        pixels, mask = np.zeros((9, 84, 84), np.uint8), np.zeros((3, 84, 84), np.uint8)
+        pixels[:, 10:30, 10 + t:30 + t] = 200
+        mask[:, 10:30, 10 + t:30 + t] = 1
+        return {"pixels": pixels, "mask": mask}
 
-        def obs(self):
-            pixels, mask = np.zeros((9, 84, 84), np.uint8), np.zeros((3, 84, 84), np.uint8)
-            pixels[:, 10:30, 10 + self.t:30 + self.t] = 200
-            mask[:, 10:30, 10 + self.t:30 + self.t] = 1
-            return {"pixels": pixels, "mask": mask}
-
-        def reset(self, seed=None):
-            self.t = 0
-            return self.obs(), {}
-
-        def step(self, action):
-            self.t += 1
-            return self.obs(), 0.0, False, self.t == 5, {}
-
-    watch = experiment.EvalWatch(agent, Env(), str(tmp_path / "videos" / "eval_0.mp4"))
-    for _ in range(2):  # two episodes of 5 steps; only the first is filmed
-        watch.reset(seed=0)
-        while not watch.step(np.zeros(2))[3]:
-            pass
+    watch = experiment.EvalWatch(agent, str(tmp_path / "videos" / "eval_0.mp4"))
+    # what train.evaluate shows it: two episodes of a reset and 5 steps; the first one filmed
+    for _ in range(2):
+        watch.see(obs(0), new_episode=True)
+        for t in range(1, 6):
+            watch.see(obs(t))
     assert set(watch.finish()) == scores
     assert all(len(v) == 2 for v in watch.values.values())  # every 10th observation: 0 and 10 of 12
     with imageio.get_reader(tmp_path / "videos" / "eval_0.mp4") as reader:

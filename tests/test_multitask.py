@@ -141,14 +141,15 @@ def test_random_kitchen_camera_moves_image_and_mask(kitchen):
 
 # ---------------------------------------------------------------- sear.py: defaults, evaluation plan
 def test_multitask_defaults_apply_to_task_sets_unless_given():
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10"], train.Config, sear.METHODS)
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10"], train.Config, train.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (512, 2_000_000)
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10", "--recipe", "authors"], train.Config, sear.METHODS)
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-mt10", "--recipe", "authors"], train.Config,
+                               train.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (4096, 2_000_000)   # the authors' code keeps 4096
     cfg, _, _ = cli.parse_args(["--env", "metaworld-mt50", "--latent-dim", "256", "--std-steps", "7"], train.Config,
-                               sear.METHODS)
+                               train.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (256, 7)
-    cfg, _, _ = cli.parse_args(["--env", "metaworld-door-open"], train.Config, sear.METHODS)
+    cfg, _, _ = cli.parse_args(["--env", "metaworld-door-open"], train.Config, train.METHODS)
     assert (cfg.latent_dim, cfg.std_steps) == (4096, 500_000)
 
 

@@ -22,6 +22,10 @@ def rows(path):
 
 
 def test_a_run_dir_from_ca5eab9_resumes_and_finishes(tmp_path):
+    import torch
+    old_snapshot = torch.load(FIXTURE / "snapshot.pt", weights_only=False)
+    # before the agent had its own generator: torch's stream was it
+    assert "rng" not in old_snapshot["agent"]
     run_dir = tmp_path / "run"
     shutil.copytree(FIXTURE, run_dir)  # a resume appends to the run: never to the fixture itself
     config = (run_dir / "config.json").read_text()
@@ -36,9 +40,9 @@ def test_a_run_dir_from_ca5eab9_resumes_and_finishes(tmp_path):
     assert [int(x["frame"]) for x in evals] == [0, 16, 32, 48]
     assert list(train[0]) == list(train[-1]) and train[-1]["mask_loss"] != ""  # same columns; it learned
     assert (run_dir / "config.json").read_text() == config
-    import torch
     snapshot = torch.load(run_dir / "snapshot.pt", weights_only=False)
     assert snapshot["counters"]["step"] == 24 and snapshot["counters"]["episode"] == 3
+    assert "rng" in snapshot["agent"]  # saved as a snapshot is now: the agent's generator with it
     # The old run's values; a field added since takes its default, one removed since is gone (CURL's
     # curl_dim and curl_coef); and what a resume may change, changed.
     from harness import cli

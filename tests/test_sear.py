@@ -1,5 +1,5 @@
 """Unit tests of sear.py's pieces: networks, losses (Eq. 4-6), augmentation, replay buffer."""
-import copy
+import io
 import math
 import os
 import subprocess
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from harness import cli
-from harness import experiment
+from harness import experiment, speed
 import sear
 import train
 
@@ -83,10 +83,10 @@ def test_recon_loss_zero_for_perfect_reconstruction():
 def test_total_loss_is_critic_plus_c1_recon_plus_c2_mask(device):
     cfg = small_cfg(recon_coef=0.5, mask_coef=0.25)
     agent = sear.Agent(cfg, action_dim=2, device=device)
-    torch.manual_seed(0)
     batch = fake_batch(device=device)
-    obs_aug, mask_aug = sear.shift_together(batch.obs, batch.mask)
-    loss, m = agent.joint_loss(agent.encode(obs_aug), obs_aug, mask_aug, batch, step=0)
+    noise = agent.draw(len(batch.obs))
+    obs_aug, mask_aug = sear.shift_together(batch.obs, batch.mask, noise.shift)
+    loss, m = agent.joint_loss(agent.encoder(obs_aug), obs_aug, mask_aug, batch, 0, noise)
     expected = (m["critic_loss"] + 0.5 * m["recon_loss"] + 0.25 * m["mask_loss"]).item()  # the terms: 0-d tensors
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     assert m["recon_loss"] > 0 and m["mask_loss"] > 0
@@ -99,23 +99,23 @@ def test_paper_defaults():
     assert (cfg.replay_size, cfg.seed_frames, cfg.critic_tau, cfg.lr) == (250_000, 4000, 0.01, 1e-4)
 
 
-def captured_grads(opt, step=True) -> list:
-    """A list that receives the gradients of each step of a sear.Adam, which keeps none on .grad (step=False:
-    the step itself is skipped, the weights stay)."""
-    steps, real = [], opt.step
-    opt.step = lambda grads: (steps.append([g.detach().clone() for g in grads]), real(grads) if step else None)[1]
-    return steps
+def grads(params) -> list:
+    """The gradients an optimiser's step took: torch's Adam leaves them on .grad until the next
+    zero_grad (which each update step calls before its backward)."""
+    return [p.grad.detach().clone() for p in params]
 
 
 def test_actor_loss_does_not_reach_encoder(device):
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=device)
-    latent, _ = agent.update_critic(fake_batch(device=device), step=0)
+    noise = agent.draw(4)
+    latent, _ = agent.update_critic(fake_batch(device=device), 0, noise)
     encoder = [p.detach().clone() for p in agent.encoder.parameters()]
-    grads = captured_grads(agent.actor_opt)
-    agent.update_actor(latent, agent.std(0))
+    encoder_grads = grads(agent.encoder.parameters())
+    agent.update_actor(latent, agent.std(0), noise.actor)
     assert latent.grad_fn is None and all(torch.equal(a, b) for a, b in zip(encoder, agent.encoder.parameters()))
-    assert any(g.any() for g in grads[0])
+    assert all(torch.equal(a, b) for a, b in zip(encoder_grads, grads(agent.encoder.parameters())))
+    assert any(g.any() for g in grads(agent.actor.parameters()))
 
 
 def test_actor_metrics_show_a_saturated_state_independent_actor(device):
@@ -124,21 +124,23 @@ def test_actor_metrics_show_a_saturated_state_independent_actor(device):
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=device)
     latent = torch.randn(8, agent.encoder.repr_dim, device=device)
-    fresh = agent.update_actor(latent, agent.std(0))
+    fresh = agent.update_actor(latent, agent.std(0), agent.draw(8).actor)
     assert fresh["actor_saturated"] == 0.0 and fresh["action_spread"] > 0.0
     with torch.no_grad():  # a last layer pushed past tanh's float32 range, as in EXPERIMENTS rung 2
         agent.actor.policy[-1].weight.zero_()
         agent.actor.policy[-1].bias.copy_(torch.tensor([12.0, -12.0]))
-    grads = captured_grads(agent.actor_opt)
-    stuck = agent.update_actor(latent, agent.std(0))
+    stuck = agent.update_actor(latent, agent.std(0), agent.draw(8).actor)
     assert stuck["actor_saturated"] == 1.0 and stuck["action_spread"] == 0.0
     names = [name for name, _ in agent.actor.named_parameters()]
-    assert all(not g.any() for name, g in zip(names, grads[0]) if name.startswith("policy."))
+    step = grads(agent.actor.parameters())
+    policy = [g for name, g in zip(names, step) if name.startswith("policy.")]
+    assert policy and all(not g.any() for g in policy)
 
 
 def test_actor_update_computes_no_critic_gradient_and_takes_drqv2s_step(device):
     """The actor's step asks autograd for the actor's gradient alone: none is computed for the critic
-    (DrQ-v2 computes it, then the next critic step drops it), and the actor's gradient is DrQ-v2's."""
+    (DrQ-v2 computes it, then the next critic step drops it), and the actor's gradient is DrQ-v2's
+    (its noise drawn from torch's stream: the same numbers handed to ours)."""
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=device)
     latent = torch.randn(8, agent.encoder.repr_dim, device=device)
@@ -148,11 +150,11 @@ def test_actor_update_computes_no_critic_gradient_and_takes_drqv2s_step(device):
     expected = [p.grad.clone() for p in agent.actor.parameters()]
     assert all(p.grad is not None for p in agent.critic.parameters())  # what DrQ-v2 computes, then drops
     agent.critic.zero_grad(set_to_none=True)
-    grads = captured_grads(agent.actor_opt, step=False)  # keep the weights, look at the gradient
     torch.manual_seed(1)
+    noise = torch.randn(8, 2, device=device)  # what sample() drew above
     agent.cfg.std_start = 0.5  # linear_std at step 0: the std used above
-    agent.update_actor(latent, agent.std(0))
-    for e, g in zip(expected, grads[0], strict=True):
+    agent.update_actor(latent, agent.std(0), noise)
+    for e, g in zip(expected, grads(agent.actor.parameters()), strict=True):  # the step's gradient
         torch.testing.assert_close(g, e)
     assert all(p.grad is None and p.requires_grad for p in agent.critic.parameters())
 
@@ -161,7 +163,7 @@ def test_critic_and_aux_losses_reach_encoder(device):
     cfg = small_cfg()
     agent = sear.Agent(cfg, action_dim=2, device=device)
     before = [p.detach().clone() for p in agent.encoder.parameters()]
-    agent.update_critic(fake_batch(device=device), step=0)
+    agent.update_critic(fake_batch(device=device), 0, agent.draw(4))
     assert any(not torch.equal(b, p) for b, p in zip(before, agent.encoder.parameters()))
 
 
@@ -297,7 +299,7 @@ def numpy_transitions(buf, times):
     ret, gamma = np.zeros(len(times), np.float32), np.float32(1.0)
     for k in range(1, buf.nstep + 1):
         ret += gamma * rewards[(times + k) % cap]
-        gamma *= np.float32(buf.discount)
+        gamma *= np.float32(buf.gamma)
     discount = np.where(terminal[(times + buf.nstep) % cap], 0.0, gamma).astype(np.float32)
     return sear.Batch(*stacked(times), actions[(times + 1) % cap], ret[:, None], discount[:, None],
                       *stacked(times + buf.nstep))
@@ -494,7 +496,7 @@ def test_samples_and_their_frequencies_equal_the_official_drqv2_replay(tmp_path)
 def test_bytes_per_transition_within_target():
     buf = sear.ReplayBuffer(10, (3, 84, 84), 6, frame_stack=3, nstep=3, discount=0.99)  # walker: 6 actions
     assert buf.bytes_per_transition <= 22_100
-    assert buf.mask_bytes == 882  # 84 * 84 bits
+    assert buf.masks.shape[1] == 882  # 84 * 84 bits
 
 
 # ---------------------------------------------------------------- acting
@@ -504,8 +506,11 @@ def test_act_returns_bounded_action_and_rgbm_needs_mask(device):
     pixels = np.random.randint(0, 256, (9, 84, 84), dtype=np.uint8)
     mask = np.zeros((3, 84, 84), dtype=np.uint8)
     a = agent.act(pixels, mask, step=10**6, eval_mode=False)
+    # on the agent's device: the loop reads every seed's at once
+    assert a.device.type == device.type
+    a = a.cpu().numpy()
     assert a.shape == (3,) and a.dtype == np.float32 and np.all(np.abs(a) <= 1)
-    rgbm = sear.Agent(small_cfg(method="rgbm"), action_dim=3, device=device)
+    rgbm = train.make_agent(small_cfg(method="rgbm"), action_dim=3, device=device)
     assert rgbm.encoder.convs[0].in_channels == 12
     with pytest.raises(ValueError, match="mask"):
         rgbm.act(pixels, None, step=0, eval_mode=True)
@@ -523,7 +528,7 @@ def test_exploration_std_counts_agent_steps_not_frames(action_repeat):
 
 
 def parse(argv):
-    return cli.parse_args(argv, train.Config, sear.METHODS)[0]
+    return cli.parse_args(argv, train.Config, train.METHODS)[0]
 
 
 @pytest.mark.parametrize("env, steps", [
@@ -651,21 +656,33 @@ def test_eval_due_is_the_schedule_the_run_dir_kept_before():
         assert new == old and new[0] == 0, (every, repeat)
 
 
-def test_adam_is_torchs_to_the_bit_without_a_host_sync():
-    """sear.Adam, stepped on autograd's gradients, equals torch.optim.Adam's CPU step weight for weight
-    over 30 steps; its state_dict loads into torch.optim.Adam and back."""
-    torch.manual_seed(0)
-    ours = torch.nn.Sequential(torch.nn.Linear(16, 64), torch.nn.ReLU(), torch.nn.Linear(64, 4))
-    theirs = copy.deepcopy(ours)
-    opt, reference = sear.Adam(ours.parameters(), lr=1e-3), torch.optim.Adam(theirs.parameters(), lr=1e-3)
-    for _ in range(30):
-        x, y = torch.randn(8, 16), torch.randn(8, 4)
-        opt.step(torch.autograd.grad((ours(x) - y).pow(2).mean(), opt.params))
-        reference.zero_grad()
-        (theirs(x) - y).pow(2).mean().backward()
-        reference.step()
-    assert all(torch.equal(p, q) for p, q in zip(ours.parameters(), theirs.parameters()))
-    back = sear.Adam(theirs.parameters(), lr=1e-3)
-    back.load_state_dict(reference.state_dict())
-    assert all(torch.equal(back.state[q]["exp_avg"], opt.state[p]["exp_avg"]) and back.state[q]["step"] == 30
-               for p, q in zip(ours.parameters(), theirs.parameters()))
+def test_the_agents_generator_is_seeded_by_torch_and_saved_with_it(device):
+    """Every random number of an agent comes from its own generator, started where building the
+    networks left torch's stream: torch.manual_seed(k) before building seeds it (the same k, the
+    same draws; another k, others), and nothing else drawn from torch's stream after moves it. It
+    is saved in state_dict(): a restored agent draws and updates as the original, to the bit."""
+    cfg = small_cfg()
+    pixels = np.random.default_rng(0).integers(0, 256, (9, 84, 84), dtype=np.uint8)
+    agents = []
+    for seed in (3, 3, 4):
+        torch.manual_seed(seed)
+        agents.append(sear.Agent(cfg, action_dim=2, device=device))
+        torch.rand(100, device=device)  # the global stream moves on: the agent's does not
+    a, b, other = agents
+    assert torch.equal(a.draw(4).target, b.draw(4).target)
+    assert not torch.equal(a.draw(4).target, other.draw(4).target)
+    for step in (5000, 5002):
+        a.update(fake_batch(seed=step, device=device), step)
+    state = io.BytesIO()
+    torch.save(a.state_dict(), state)
+    torch.manual_seed(9)
+    restored = sear.Agent(cfg, action_dim=2, device=device)
+    restored.load_state_dict(torch.load(io.BytesIO(state.getvalue()), weights_only=False))
+    for agent in (a, restored):
+        agent.metrics = agent.update(fake_batch(seed=1, device=device), 5004)
+        agent.action = agent.act(pixels, None, step=5004, eval_mode=False)
+    assert all(torch.equal(a.metrics[k], restored.metrics[k]) for k in a.metrics)
+    assert torch.equal(a.action, restored.action)
+    for name in ("encoder", "actor", "critic", "critic_target", "aux"):
+        assert all(torch.equal(p, q) for p, q in zip(getattr(a, name).parameters(),
+                                                     getattr(restored, name).parameters())), name

@@ -271,7 +271,7 @@ def model_with(path, **meta):
     ({"labels": 3}, "mask model: held-out IoU not recorded"),   # an older file, or no held-out pairs
     ({"iou": {"train": 0.2, "held-out": float("nan")}}, "mask model: held-out IoU not recorded")])
 def test_sear_prints_the_models_recorded_held_out_iou(tmp_path, capsys, meta, said):
-    from harness import experiment, runenvs
+    from harness import runenvs
     cfg = train.Config(env="walker-walk", mask_source=f"learned:{model_with(tmp_path / 'm.pt', **meta)}")
     assert runenvs.load_mask_model(cfg) is not None
     out = capsys.readouterr()
@@ -279,7 +279,7 @@ def test_sear_prints_the_models_recorded_held_out_iou(tmp_path, capsys, meta, sa
 
 
 def test_sear_warns_on_a_model_forced_below_the_floor(tmp_path, capsys):
-    from harness import experiment, runenvs
+    from harness import runenvs
     path = model_with(tmp_path / "m.pt", iou={"train": 0.01, "held-out": 0.0}, iou_floor=0.5, forced_below_floor=True)
     assert runenvs.load_mask_model(train.Config(env="walker-walk", mask_source=f"learned:{path}")) is not None
     err = capsys.readouterr().err

@@ -1,7 +1,8 @@
-"""benchmarks/update_counts.py: the counter on functions whose ops, syncs and host->device bytes are known,
-then the update rewrite's targets on the real agent (every method: no host sync inside an update; drq
-and sear: at most update_counts.OPS_TARGET ops). The agents are small (the counts do not depend on the
-widths or the batch, which test_counts_do_not_depend_on_sizes checks against the paper's widths)."""
+"""benchmarks/update_counts.py: the counter on functions whose ops, syncs and host->device bytes
+are known, then the budgets on the real agent's plain update (every method of train.METHODS, and
+DrM on drq and sear: no host sync inside an update; drq and sear: at most update_counts.OPS_TARGET
+ops). The agents are small (the counts do not depend on the widths or the batch, which
+test_counts_do_not_depend_on_sizes checks against the paper's widths)."""
 import sys
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+import train  # noqa: E402
 import update_counts  # noqa: E402
 
 SMALL = {"latent_dim": 64, "hidden_dim": 32, "feature_dim": 16, "batch_size": 4, "action_repeat": 2}
@@ -148,7 +150,12 @@ def test_counts_do_not_depend_on_sizes(method):
     assert (big.names, big.sync_names, big.host_reads) == (small.names, small.sync_names, small.host_reads)
 
 
-# --- the targets of the update rewrite: these fail until it lands ---------------------------------
+# --- the budgets ----------------------------------------------------------------------------------
+def test_every_method_is_counted():
+    """Every --method of the run's table (not sear.py's own two alone), and DrM on drq and sear."""
+    assert set(update_counts.default_methods()) == {*train.METHODS, "drq+drm", "sear+drm"}
+
+
 @pytest.mark.parametrize("method", update_counts.default_methods())
 def test_update_has_no_host_sync(method):
     c = update_counts.count_method(method, SMALL, SMALL["batch_size"])
