@@ -237,6 +237,8 @@ def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=
     SIGTERM or a storage error into one line."""
     with group.Runs(cfg, run, snapshot, seeds, group_dir) as runs:
         device = cli.torch_setup(run)
+        # a learned mask source checked (and its held-out IoU said) once, here, before its workers
+        runenvs.load_mask_model(cfg)
         configs = [cli.config_dict(d.cfg, d.run) for d in runs]
         uses_mask = METHODS[cfg.method].uses_mask
         envs = runs.closing(runenvs.SeedEnvs(configs, uses_mask, workers=group.workers(runs)))

@@ -734,15 +734,16 @@ def resume_config(given: dict, Config, methods: dict) -> tuple:
 GROUP_FILE = "group.json"  # harness/group.py's: a seed group's folder holds it, beside its runs
 
 
-def finished(cfg, run: RunConfig, snapshot) -> str | None:
-    """--resume of a run that has trained its --frames and was evaluated at its last frame: the line
-    that says so, before any env or network is built. None for any other command, and for a run of
-    a seed group (its group resumes it)."""
+def finished(cfg, run: RunConfig, snapshot, group: str = "") -> str | None:
+    """--resume of a run (or with `group`, of its seed group's folder) that has trained its --frames
+    and was evaluated at its last frame: the line that says so, before any env or network is built.
+    None for any other command, and for a run of a seed group resumed alone (its group resumes it)."""
     counters = (snapshot or {}).get("counters")
     if not run.resume or run.evaluate or not counters:
         return None
-    if os.path.isfile(os.path.join(os.path.dirname(os.path.abspath(run.resume)), GROUP_FILE)):
+    if not group and os.path.isfile(os.path.join(os.path.dirname(os.path.abspath(run.resume)), GROUP_FILE)):
         return None
+    run = dataclasses.replace(run, resume=group or run.resume)
     import envs  # the suite's action repeat, where the config holds 0
     frame = counters["step"] * (cfg.action_repeat or envs.default_action_repeat(cfg.env))
     evaluated = counters.get("last_eval_frame", counters.get("next_eval", 0) - 1)

@@ -264,6 +264,10 @@ def main(argv, Config, methods, train, evaluate) -> int:
     def train_group(cfg, run, snapshot):
         if run.evaluate:
             raise cli.ConfigError("--evaluate scores one run directory; give one seed's, not --seeds")
+        done = group_dir and cli.finished(cfg, run, snapshot, group=group_dir)
+        if done:
+            # every seed stopped where the first did (Runs checks it when it trains on)
+            return print(done)
         return train(cfg, run, snapshot, seeds, group_dir)
     return cli.main(argv, Config, methods, train_group, train_group)
 

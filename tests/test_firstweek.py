@@ -342,8 +342,9 @@ def sear_command(*args):
 
 @pytest.mark.skipif(not user_namespace_available(), reason="needs unprivileged user namespaces (unshare -rm)")
 def test_a_full_disk_is_one_line_and_the_last_snapshot_stands(tmp_path):
-    """A 6 MB tmpfs: the snapshot at frame 16 (3.7 MB: Adam's moments are made with the agent) fits,
-    the next cannot (its .tmp beside the last)."""
+    """A 6 MB tmpfs: the snapshot at frame 16 (the networks: no update yet, so no Adam moments) and the
+    one at frame 32 (3.7 MB, the moments made by the first step) fit, the next cannot (its .tmp beside
+    the last)."""
     disk, copy = tmp_path / "disk", tmp_path / "copy"
     disk.mkdir()
     r = in_user_namespace(
@@ -357,8 +358,8 @@ def test_a_full_disk_is_one_line_and_the_last_snapshot_stands(tmp_path):
     assert warning.startswith(f"sear.py: warning: {disk / 'runs' / run_dir.name}: 6.3 MB free, but this run's files "
                               f"need up to 7.3 MB more"), warning
     assert line.startswith(f"sear.py: error: cannot write '{disk / 'runs' / run_dir.name / 'snapshot.pt'}': "
-                           f"No space left on device (ENOSPC); the last snapshot (frame 16) stands"), line
-    assert not list(run_dir.rglob("*.tmp")) and snapshot_step(run_dir) == 8
+                           f"No space left on device (ENOSPC); the last snapshot (frame 32) stands"), line
+    assert not list(run_dir.rglob("*.tmp")) and snapshot_step(run_dir) == 16
 
 
 def test_a_file_size_limit_during_a_snapshot_is_one_line_and_leaves_the_old_one(a_run, tmp_path):
@@ -376,13 +377,14 @@ def test_a_file_size_limit_during_a_snapshot_is_one_line_and_leaves_the_old_one(
 
 @pytest.mark.skipif(not user_namespace_available(), reason="needs unprivileged user namespaces (unshare -rm)")
 def test_a_read_only_file_system_is_one_line_for_a_new_run_and_for_resume(finished_run, tmp_path):
+    """A new run, and a resume that trains further (a finished run resumed as it is only says so)."""
     ro = tmp_path / "ro"
     ro.mkdir()
     r = in_user_namespace(
         f"mount -t tmpfs tmpfs {ro} && mkdir {ro}/runs && cp -a {finished_run} {ro}/runs/ && "
         f"mount -o remount,ro {ro} && cd {tmp_path} && "
         + sear_command("--run-root", ro / "runs", "--env", "walker-walk", *TINY) + "; echo exit $?; "
-        + sear_command("--resume", ro / "runs" / finished_run.name) + "; echo exit $?")
+        + sear_command("--resume", ro / "runs" / finished_run.name, "--frames", "64") + "; echo exit $?")
     assert re.findall(r"^exit (\d+)$", r.stdout, re.M) == ["2", "2"], r.stdout[-2000:] + r.stderr[-3000:]
     new, resume = r.stderr.strip().splitlines()
     assert new == f"sear.py: error: --run-root: cannot write in '{ro / 'runs'}': read-only file system"

@@ -228,3 +228,12 @@ def test_envs_in_this_process_when_asked(tmp_path, monkeypatch):
     r = run([*GROUP, "--frames", "24"], tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "envs in this process" in r.stdout
+
+
+def test_a_finished_group_resumed_says_so_within_seconds(tmp_path):
+    r = run([*GROUP, "--frames", "24"], tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    began = time.monotonic()
+    r = resume(group_dir(tmp_path), tmp_path)
+    assert r.returncode == 0 and r.stdout.strip().startswith(f"{group_dir(tmp_path)} is done: it trained to frame 24")
+    assert "group:" not in r.stdout and time.monotonic() - began < 30, r.stdout
