@@ -175,11 +175,10 @@ def set_tf32(on: bool) -> None:
     """TF32 in CUDA's float32 convolutions and matmuls, on or off (torch turns it on for cuDNN's
     convolutions by default)."""
     import torch
-    precision = "tf32" if on else "ieee"
-    if hasattr(torch.backends.cudnn, "conv") and hasattr(torch.backends.cudnn.conv, "fp32_precision"):
-        torch.backends.cuda.matmul.fp32_precision = torch.backends.cudnn.conv.fp32_precision = precision
-    else:  # torch before 2.9
-        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
+    # The flags every torch since 1.7 reads. torch 2.9's fp32_precision API, set to "ieee" for
+    # convolutions, makes torch.func.vmap's convolutions (the seeds' batched update) raise on
+    # torch 2.13's check of cuDNN's TF32 flag, on the CPU too.
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
 
 
 def cxx_compiler() -> str | None:

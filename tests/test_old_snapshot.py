@@ -39,6 +39,13 @@ def test_a_run_dir_from_ca5eab9_resumes_and_finishes(tmp_path):
     assert [int(x["frame"]) for x in train] == [16, 32, 48]
     assert [int(x["frame"]) for x in evals] == [0, 16, 32, 48]
     assert list(train[0]) == list(train[-1]) and train[-1]["mask_loss"] != ""  # same columns; it learned
+    # Exactly what the code of b67b6dd wrote resuming this run (its draws from torch's stream, now the
+    # agent's generator's; its optimiser state as saved, stepped as then): to the last digit.
+    assert [train[-1][k] for k in ("return", "critic_loss", "actor_loss", "q", "recon_loss", "mask_loss")] == [
+        "1.5334639174104543", "1.6713802814483643", "-0.04434816958382726", "0.10671739093959332",
+        "5117.735107421875", "14633.758056640625"]
+    assert [evals[-1][k] for k in ("return", "mask_bce", "recon_psnr")] == [
+        "2.7559330536329627", "0.6926234364509583", "10.981945037841797"]
     assert (run_dir / "config.json").read_text() == config
     snapshot = torch.load(run_dir / "snapshot.pt", weights_only=False)
     assert snapshot["counters"]["step"] == 24 and snapshot["counters"]["episode"] == 3

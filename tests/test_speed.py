@@ -280,3 +280,19 @@ def test_the_cuda_graph_replays_the_plain_update_to_the_bit(label, device, monke
         assert all(torch.equal(metrics[0][k], metrics[1][k]) for k in metrics[0]), (i, metrics)
     ours, theirs = parameters(graphed), parameters(plain)
     assert all(torch.equal(ours[n], theirs[n]) for n in theirs)
+
+
+@pytest.mark.parametrize("tf32", [False, True])
+def test_the_batched_seeds_run_whatever_tf32_is_set_to(tf32):
+    """sear.py sets TF32 at start (off by default): the seeds' vmapped convolutions run after either."""
+    from harness import process
+    process.set_tf32(tf32)
+    try:
+        agents = []
+        for seed in range(2):
+            torch.manual_seed(seed)
+            agents.append(train.make_agent(small_cfg(method="drq"), 2, torch.device("cpu")))
+        metrics = speed.SeedBatch(agents).update([fake_batch(seed=1), fake_batch(seed=2)], 5000)
+        assert all(torch.isfinite(m["critic_loss"]) for m in metrics)
+    finally:
+        process.set_tf32(False)
