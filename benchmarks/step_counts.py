@@ -25,7 +25,6 @@ import contextlib
 import os
 import pickle
 import sys
-import types
 
 import gymnasium as gym
 import numpy as np

@@ -747,7 +747,7 @@ class Health:
     """What every update's metrics say (RunDir.log_update), beyond the numbers in train.csv.
 
     A loss or Q that is not a finite number stops the run (cli.NonFinite), before the next action
-    reaches the simulator; an action that is not finite stops it too (FiniteActions, the last
+    reaches the simulator; an action that is not finite stops it too (runenvs.check_finite, the last
     guard). Two warnings, each given once, on the progress line and stderr (docs/health.md, which
     also says how the thresholds were chosen from the runs of EXPERIMENTS.md):
     - the actor has collapsed: over the last COLLAPSE_WINDOW updates, on average at least SATURATED
@@ -1358,7 +1358,7 @@ class RunDir:
     def read_updates(self):
         """The pending updates' metrics, read in one device sync: into the episode's means, and
         through the health checks, update by update (a value that is not finite stops the run; an
-        agent whose weights went NaN is stopped sooner, at its next action, by FiniteActions)."""
+        agent whose weights went NaN is stopped sooner, at its next action, by runenvs.check_finite)."""
         values = [v for metrics in self.pending for v in metrics.values()]
         tensors = [v for v in values if torch.is_tensor(v)]
         read = iter(torch.stack([v.detach().double() for v in tensors]).tolist() if tensors else [])

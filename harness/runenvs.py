@@ -64,11 +64,14 @@ def load_mask_model(cfg, quiet=False):
     verdict, message = segment.recorded_iou(model.meta)
     if verdict == "refuse":
         raise cli.ConfigError(f"--mask-source: {message}")
-    if not quiet:
-        (cli.warn if verdict == "warn" else print)(f"--mask-source: {message}" if verdict == "warn" else message)
-        message = other_robot_warning(cfg, model.meta)
-        if message:
-            cli.warn(message)
+    if quiet:
+        return model
+    if verdict == "warn":
+        cli.warn(f"--mask-source: {message}")
+    else:
+        print(message)
+    if other := other_robot_warning(cfg, model.meta):
+        cli.warn(other)
     return model
 
 
