@@ -540,13 +540,14 @@ class ReplayBuffer:
         return min(self.t, self.capacity)
 
     def _write(self, obs, action, reward, terminal, first):
-        i = self.t % self.capacity
-        self.frames[i] = torch.as_tensor(obs["pixels"][-3:])
         mask = np.packbits(np.asarray(obs["mask"][-1], dtype=bool).reshape(-1))
-        self.masks[i] = torch.from_numpy(mask)
-        self.actions[i] = torch.as_tensor(action)
-        self.rewards[i], self.terminal[i], self.first[i] = float(reward), bool(terminal), first
+        self.put(self.t % self.capacity, obs["pixels"][-3:], mask, action, reward, terminal, first)
         self.t += 1
+
+    def put(self, i, frame, mask, action, reward, terminal, first):
+        """Slot i's contents, from host arrays and numbers."""
+        self.frames[i], self.masks[i], self.actions[i] = map(torch.as_tensor, (frame, mask, action))
+        self.rewards[i], self.terminal[i], self.first[i] = float(reward), bool(terminal), first
 
     def add_first(self, obs):
         """The observation returned by reset(): the episode before it is finished, drawn from now
@@ -616,5 +617,4 @@ class ReplayBuffer:
 if __name__ == "__main__":
     import os
     import runpy
-    here = os.path.dirname(os.path.abspath(__file__))
-    runpy.run_path(os.path.join(here, "train.py"), run_name="__main__")
+    runpy.run_path(os.path.join(os.path.dirname(__file__), "train.py"), run_name="__main__")

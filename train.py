@@ -176,7 +176,8 @@ def eval_due(frame: int, last_eval_frame: int, every: int) -> bool:
 def build(runs: group.Runs, envs: runenvs.SeedEnvs, run: cli.RunConfig, device, source=None):
     """Each seed's agent (its networks drawn after torch.manual_seed(seed), as a single run of the
     seed draws them; with --init-from, `source`'s networks copied in), replay and sampling RNG, a
-    resumed seed's restored; then the speed layer's samplers and learner (harness/speed.py)."""
+    resumed seed's restored; then the speed layer's samplers, learner and the flush of the rings'
+    writes (harness/speed.py)."""
     agents, buffers, rngs = [], [], []
     for d in runs:
         cfg = d.cfg
@@ -193,7 +194,8 @@ def build(runs: group.Runs, envs: runenvs.SeedEnvs, run: cli.RunConfig, device, 
     runs.start(agents, buffers, rngs)
     samplers = [runs.closing(speed.prefetcher(b, d.cfg, run, r, device)) or b
                 for b, d, r in zip(buffers, runs, rngs)]
-    return agents, buffers, samplers, speed.Learner(agents, run, device)
+    learner = speed.Learner(agents, run, device)
+    return agents, buffers, samplers, learner, speed.stage_writes(buffers)
 
 
 def start_episodes(runs: group.Runs, envs, buffers, stacks, which, ep) -> None:
@@ -246,7 +248,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=
         if run.init_from and not snapshot:
             source = experiment.init_source(cfg, run, envs.action_dim)
         runs.create(f"envs in {envs.kind}; device {device}")
-        agents, buffers, samplers, learner = build(runs, envs, run, device, source)
+        agents, buffers, samplers, learner, flush_writes = build(runs, envs, run, device, source)
         lead, cfg, n = runs.dirs[0], runs.dirs[0].cfg, len(runs)
         stacks, ep = runenvs.Stacks(n, cfg.frame_stack, envs.frame_shape), np.zeros((n, 3))
         clock = time.monotonic()
@@ -283,6 +285,8 @@ def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=
             results = envs.receive("train")
             stacks.push(slice(None), results[0])
             end_steps(runs, buffers, stacks, actions, results, ep)
+            # every seed's writes of the step to rings on a GPU in one copy (speed.StagedWrites)
+            flush_writes()
         return runs.finish()
 
 

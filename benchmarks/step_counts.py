@@ -9,8 +9,10 @@ worker sends per step; and, with real envs, each worker's private memory.
 Counted per agent step over --steps steps after a warm-up:
   h2d        tensors made from host data for the agents (aten.lift_fresh: torch.as_tensor of an array,
              while train.act runs): what crosses PCIe to a GPU.
-  writes     tensors made from host data for the replay rings (ReplayBuffer.add), per seed: on the
-             host by default (host memory to host memory), on the GPU with --replay-device cuda.
+  ring copies  copies of host data into replay rings on a GPU per agent step, all seeds together: rings
+             on torch's meta device stand in for the GPU (no data; every copy onto it is seen), written
+             by ReplayBuffer.put (slot by slot: frame, packed mask, action) and through
+             harness/speed.py's StagedWrites (one copy of every seed's rows), as train.py writes them.
   syncs      host reads of device data: .cpu() or a copy to the host, .item(); .numpy() of a tensor
              .cpu() already brought to the host is not counted again.
   answer     what a worker sends per step: its observation through shared memory (the newest frame and
@@ -34,7 +36,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:0] = [os.path.join(HERE, ".."), HERE]
 import update_counts  # noqa: E402
 import train  # noqa: E402
-from harness import cli, runenvs  # noqa: E402
+from harness import cli, runenvs, speed  # noqa: E402
 
 SIZE, ACTIONS, EPISODE = 84, 6, 50
 
@@ -95,42 +97,48 @@ def setup(args):
                for k in range(1, args.seeds + 1)]
     make = None if args.env else stand_in
     envs = runenvs.SeedEnvs(configs, train.METHODS[cfg.method].uses_mask, workers=True, make=make)
-    agents, buffers = [], []
+    agents, rings = [], {"put": [], "staged": []}
     for c in configs:
         torch.manual_seed(c["seed"])
         agents.append(train.make_agent(train.Config(**{**vars(cfg), "seed": c["seed"]}), envs.action_dim, "cpu"))
-        buffers.append(train.make_replay(cfg, 1000, envs.frame_shape, envs.action_dim, cfg.frame_stack, cfg.nstep,
-                                         cfg.discount))
-    return cfg, envs, agents, buffers
+        for buffers in rings.values():
+            buffers.append(train.make_replay(cfg, 1000, envs.frame_shape, envs.action_dim, cfg.frame_stack,
+                                             cfg.nstep, cfg.discount, device="meta"))
+    flushes = {"put": lambda: None, "staged": speed.stage_writes(rings["staged"])}
+    return cfg, envs, agents, {name: (rings[name], flushes[name]) for name in rings}
 
 
-def step_all(cfg, envs, agents, buffers, stacks, step, counter=None):
-    """One agent step of the loop for every seed: act, step, stack, write the replay."""
+def step_all(cfg, envs, agents, rings, stacks, step, counter=None):
+    """One agent step of the loop for every seed: act, step, stack, write each set of rings."""
     where = counter.during if counter else lambda name: contextlib.nullcontext()
     with where("act"):
         actions = train.act(agents, stacks.obs, step, eval_mode=False)
     newest, rewards, terminated, truncated, _ = envs.step("train", actions)
     stacks.push(slice(None), newest)
-    with where("writes"):
-        for i, b in enumerate(buffers):
-            b.add(actions[i], rewards[i], terminated[i], stacks.seed(i))
+    for name, (buffers, flush) in rings.items():
+        with where(name):
+            for i, b in enumerate(buffers):
+                b.add(actions[i], rewards[i], terminated[i], stacks.seed(i))
+            flush()
     return terminated | truncated
 
 
 def measure(args) -> dict:
-    cfg, envs, agents, buffers = setup(args)
+    cfg, envs, agents, rings = setup(args)
     try:
         n = len(agents)
         stacks = runenvs.Stacks(n, cfg.frame_stack, envs.frame_shape)
         stacks.reset(np.ones(n, bool), envs.reset("train", np.ones(n, bool), list(range(n)))[0])
-        for b, i in zip(buffers, range(n)):
-            b.add_first(stacks.seed(i))
+        for buffers, flush in rings.values():
+            for b, i in zip(buffers, range(n)):
+                b.add_first(stacks.seed(i))
+            flush()
         for step in range(3):  # warm-up
-            step_all(cfg, envs, agents, buffers, stacks, step)
+            step_all(cfg, envs, agents, rings, stacks, step)
         counter = StepCounter()
         with counter, update_counts.HostReads(counter.sync_names):
             for step in range(3, 3 + args.steps):
-                step_all(cfg, envs, agents, buffers, stacks, step, counter)
+                step_all(cfg, envs, agents, rings, stacks, step, counter)
         scalar_reads = len(counter.scalar_reads)
         counter.sync_names.pop("Tensor.numpy", None)
         env = stand_in({"seed": 0}, "train", True, False) if not args.env else None
@@ -138,7 +146,7 @@ def measure(args) -> dict:
         kids = children(os.getpid())
         private = [private_mb(k) for k in kids]
         return {"seeds": n, "h2d": counter.lifts["act"] / args.steps,
-                "writes": counter.lifts["writes"] / args.steps / n,
+                "ring copies": {name: counter.copies[name] / args.steps for name in rings},
                 "syncs": (sum(counter.sync_names.values()) + scalar_reads) / args.steps,
                 "answer": answer, "workers": len(kids), "private": private}
     finally:
@@ -155,7 +163,7 @@ class StepCounter(update_counts.OpCounter):
 
     def __init__(self):
         super().__init__("cpu")
-        self.lifts, self.part = collections.Counter(), None
+        self.lifts, self.copies, self.part = collections.Counter(), collections.Counter(), None
 
     @contextlib.contextmanager
     def during(self, part: str):
@@ -168,6 +176,8 @@ class StepCounter(update_counts.OpCounter):
     def __torch_dispatch__(self, func, types_, args=(), kwargs=None):
         if func.overloadpacket in (torch.ops.aten.lift_fresh, torch.ops.aten.lift_fresh_copy):
             self.lifts[self.part] += 1
+        if func.overloadpacket is torch.ops.aten.copy_ and args[1].device.type == "cpu" != args[0].device.type:
+            self.copies[self.part] += 1
         return super().__torch_dispatch__(func, types_, args, kwargs)
 
 
@@ -192,11 +202,12 @@ def main(argv=None) -> int:
     shared, pipe = m["answer"]
     print(f"## One agent step of {m['seeds']} seeds ({args.method}, {'stand-in envs' if not args.env else args.env}, "
           f"{m['workers']} env workers)\n")
-    print("| host->device copies | host syncs | replay writes per seed | worker answer: shared memory + pipe "
-          "| worker private memory |")
+    print("| host->device copies (act) | host syncs | copies into GPU rings: put / staged "
+          "| worker answer: shared memory + pipe | worker private memory |")
     print("|---|---|---|---|---|")
     mem = (f"{np.mean(m['private']):.0f} MB mean, {max(m['private']):.0f} MB largest" if m["private"] else "n/a")
-    print(f"| {m['h2d']:.1f} | {m['syncs']:.1f} | {m['writes']:.1f} | {shared} + {pipe} = "
+    copies = m["ring copies"]
+    print(f"| {m['h2d']:.1f} | {m['syncs']:.1f} | {copies['put']:.1f} / {copies['staged']:.1f} | {shared} + {pipe} = "
           f"{(shared + pipe) / 1000:.1f} KB | {mem} |")
     return 0
 

@@ -314,6 +314,72 @@ def replay_device(run, device: torch.device, replay_bytes: int) -> torch.device:
     return torch.device("cpu")
 
 
+def stage_writes(buffers: list):
+    """Where the rings live on a GPU, their writes go through one StagedWrites; returns the flush
+    the loop calls once per agent step (nothing to do for rings on the host)."""
+    if buffers[0].device.type == "cpu":
+        return lambda: None
+    return StagedWrites(buffers).flush
+
+
+NUMPY = {torch.float32: np.float32, torch.uint8: np.uint8, torch.bool: np.bool_}
+
+
+class StagedWrites:
+    """All seeds' replay writes of an agent step in one host->device copy. ReplayBuffer.put writes a
+    slot at once: three copies from pageable host memory (frame, packed mask, action) and three fills
+    per seed. Here each ring's put packs its slot into a row of one pinned host tensor (the ring's
+    counters and episodes move on as before); flush() copies the rows without blocking and fills
+    each ring's slots from the copy on the device. A slot still waiting is never drawn: a ring
+    draws only from finished episodes, and the slot a write overwrites is already outside them."""
+
+    def __init__(self, buffers: list):
+        b = buffers[0]
+        # (ring array, bytes, dtype, shape of a slot); float32 first, so their offsets stay 4-aligned
+        self.parts = [(name, getattr(b, name)[0].nbytes, getattr(b, name).dtype, getattr(b, name).shape[1:])
+                      for name in ("actions", "rewards", "frames", "masks", "terminal", "first")]
+        row = -(-sum(n for _, n, _, _ in self.parts) // 4) * 4
+        pin = b.device.type == "cuda"
+        # at most two writes a seed between flushes: an episode's first step and a step
+        self.host = torch.zeros((2 * len(buffers), row), dtype=torch.uint8, pin_memory=pin)
+        self.rows = torch.zeros_like(self.host, device=b.device)
+        self.copied = torch.cuda.Event() if pin else None
+        self.pending = []  # (ring, slot) of each row filled since the last flush
+        for ring in buffers:
+            ring.put = self.putter(ring)
+
+    def putter(self, ring):
+        def put(i, frame, mask, action, reward, terminal, first):
+            if len(self.pending) == len(self.host):
+                self.flush()
+            if not self.pending and self.copied is not None:
+                # the last flush's copy has left these rows (long since: an act read the GPU after it)
+                self.copied.synchronize()
+            values = (action, reward, frame, mask, terminal, first)
+            row, offset = self.host[len(self.pending)].numpy(), 0
+            for (_, n, dtype, shape), value in zip(self.parts, values):
+                value = np.broadcast_to(np.asarray(value, dtype=NUMPY[dtype]), shape)
+                row[offset:offset + n] = np.ascontiguousarray(value).reshape(-1).view(np.uint8)
+                offset += n
+            self.pending.append((ring, i))
+        return put
+
+    def flush(self) -> None:
+        """The rows written since the last flush: one copy to the device, then each into its slot."""
+        if not self.pending:
+            return
+        rows = self.rows[:len(self.pending)]
+        rows.copy_(self.host[:len(self.pending)], non_blocking=True)
+        if self.copied is not None:
+            self.copied.record()
+        for k, (ring, i) in enumerate(self.pending):
+            offset = 0
+            for name, n, dtype, shape in self.parts:
+                getattr(ring, name)[i] = rows[k, offset:offset + n].view(dtype).view(shape)
+                offset += n
+        self.pending.clear()
+
+
 def prefetcher(buffer, cfg, run, rng: np.random.Generator, device: torch.device):
     """The background sampler of --prefetch (on by default when a CUDA run keeps its replay on the
     host), or None: the loop samples."""

@@ -296,3 +296,69 @@ def test_the_batched_seeds_run_whatever_tf32_is_set_to(tf32):
         assert all(torch.isfinite(m["critic_loss"]) for m in metrics)
     finally:
         process.set_tf32(False)
+
+
+@pytest.mark.parametrize("method", ["sear", "ef"])
+def test_staged_ring_writes_equal_the_plain_ones(method, device):
+    """StagedWrites (rings on a GPU: every seed's writes of a step in one copy) leaves the rings as
+    ReplayBuffer.put leaves them: episodes starting, terminating and the ring wrapping; several
+    flushes pending at once (an episode's first step and a step)."""
+    import numpy as np
+    rng = np.random.default_rng(0)
+    cfg = train.Config(method=method, frame_stack=3, nstep=2)
+
+    def rings():
+        return [train.make_replay(cfg, 7, (3, 8, 8), 2, 3, 2, 0.99, device=device) for _ in range(3)]
+    plain, staged = rings(), rings()
+    flush = speed.stage_writes(staged) if staged[0].device.type != "cpu" else speed.StagedWrites(staged).flush
+    for t in range(40):
+        obs = [{"pixels": rng.integers(0, 256, (9, 8, 8), dtype=np.uint8),
+                "mask": rng.integers(0, 2, (3, 8, 8))} for _ in range(3)]
+        action, reward, end = rng.uniform(-1, 1, (3, 2)).astype(np.float32), rng.random(3), rng.random(3) < 0.1
+        for buffers in (plain, staged):
+            for i, b in enumerate(buffers):
+                if t % 9 == 0:
+                    b.add_first(obs[i])
+                b.add(action[i], reward[i], end[i], obs[i])
+        if t % 5:
+            flush()
+    flush()
+    for p, s in zip(plain, staged):
+        assert p.t == s.t and (p.episodes == s.episodes).all()
+        for name in sear.ReplayBuffer.ARRAYS:
+            assert torch.equal(getattr(p, name), getattr(s, name)), name
+        times = rng.integers(0, 5, 4)
+        for a, b in zip(p.batch(times, np.random.default_rng(1)), s.batch(times, np.random.default_rng(1))):
+            assert torch.equal(a, b)
+
+
+def test_a_run_with_staged_ring_writes_writes_the_plain_runs_rows(tmp_path):
+    """The loop with StagedWrites (what rings on a GPU take; here on the host) trains, logs and
+    snapshots what the plain writes do: the same train.csv and the same saved rings."""
+    import os
+    import subprocess
+    import sys
+    from tests.test_cli import ROOT
+    driver = ("import sys, train\nfrom harness import speed\n"
+              "if sys.argv.pop(1) == 'staged':\n"
+              "    speed.stage_writes = lambda buffers: speed.StagedWrites(buffers).flush\n"
+              "sys.exit(train.main(sys.argv[1:]))\n")
+    dirs = {}
+    for how in ("plain", "staged"):
+        (tmp_path / how).mkdir()
+        r = subprocess.run([sys.executable, "-c", driver, how, "--run-root", str(tmp_path / how / "runs"),
+                            "--env", "walker-walk", "--method", "sear", "--seed", "3", "--frames", "48",
+                            "--save-buffer", *tiny("sear")], capture_output=True, text=True, timeout=600,
+                           cwd=ROOT, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+        assert r.returncode == 0, r.stderr[-2000:]
+        dirs[how] = only_run_dir(tmp_path / how)
+    ignore = {"wall_time", "fps"}
+    table = [{k: v for k, v in x.items() if k not in ignore} for x in rows(dirs["plain"] / "train.csv")]
+    assert table[-1]["critic_loss"] != ""
+    assert table == [{k: v for k, v in x.items() if k not in ignore} for x in rows(dirs["staged"] / "train.csv")]
+    import numpy as np
+    nets = [torch.load(dirs[how] / "snapshot.pt", weights_only=False)["agent"]["critic"] for how in dirs]
+    assert all(torch.equal(nets[0][k], nets[1][k]) for k in nets[0])
+    with np.load(dirs["plain"] / "buffer.npz") as a, np.load(dirs["staged"] / "buffer.npz") as b:
+        assert sorted(a.files) == sorted(b.files) and int(a["t"]) > 20
+        assert all(np.array_equal(a[k], b[k]) for k in a.files)

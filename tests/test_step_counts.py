@@ -1,5 +1,6 @@
 """benchmarks/step_counts.py: one agent step of N seeds makes one host->device copy (the seeds'
-observations) and one host read (their actions), whatever N; a worker's answer is the newest frame and
+observations) and one host read (their actions), whatever N, and one copy of all seeds' replay writes
+into rings on a GPU; a worker's answer is the newest frame and
 its bit-packed mask, ~22 KB; the workers import no torch."""
 import os
 import sys
@@ -21,6 +22,8 @@ def test_a_step_of_n_seeds_copies_once_and_reads_once():
         shared, pipe = m["answer"]
         assert shared + pipe <= 23_000 and shared == 3 * 84 * 84 + 84 * 84 // 8, m
         assert m["workers"] >= 2 * m["seeds"]
+        # rings on a GPU: put copies frame, mask and action seed by seed; the staged writes once
+        assert m["ring copies"] == {"put": 3 * m["seeds"], "staged": 1}, m
     assert counts[0]["h2d"] == counts[1]["h2d"] and counts[0]["syncs"] == counts[1]["syncs"]
     workers = [pid for pid in step_counts.children(os.getpid())
                if b"multiprocessing.spawn" in Path(f"/proc/{pid}/cmdline").read_bytes()]
