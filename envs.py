@@ -458,37 +458,46 @@ class Backgrounds:
             return
         names = (DAVIS17_TRAIN if split == "train" else DAVIS17_VAL)[:limit]   # the original's num_videos
         if directory == DAVIS_KEYWORD:
-            root = davis_cache() / _DAVIS_FRAMES
-            if not root.is_dir():
-                raise EnvError(f"--backgrounds davis: no DAVIS-2017 in {davis_cache()}; get it "
-                               f"({DAVIS_BYTES / 1e6:.0f} MB) with: python envs.py --fetch-davis")
-            if missing := davis_missing(root, names):
-                raise EnvError(f"--backgrounds davis: {root} lacks {len(missing)} of the {split} videos "
-                               f"({', '.join(missing[:3])}); fetch it again: python envs.py --fetch-davis")
-            groups = [_images(root / n) for n in names]
-            self.source = f"DAVIS 2017 {split} ({len(groups)} videos)"
+            self.groups = self._cached_davis(names, split)
+            self.source = f"DAVIS 2017 {split} ({len(self.groups)} videos)"
         else:
-            root = Path(directory).expanduser()
-            if not root.is_dir():
-                raise EnvError(f"backgrounds dir {directory!r} does not exist or is not a directory")
-            for davis in (root / _DAVIS_FRAMES, root / _DAVIS_FRAMES.relative_to("DAVIS")):
-                if davis.is_dir():   # a --fetch-davis --cache folder, or the DAVIS root
-                    root = davis
-                    break
-            subdirs = {p.name for p in root.iterdir() if p.is_dir()}
-            if subdirs & set(DAVIS17_TRAIN + DAVIS17_VAL):
-                groups = [g for g in (_images(root / n) for n in names if n in subdirs) if g]
-                if not groups:
-                    raise EnvError(f"backgrounds dir {directory!r} looks like DAVIS but holds none of the "
-                                   f"{'train' if split == 'train' else 'val'} videos {difficulty} uses")
-                self.source = f"DAVIS 2017 {split} ({len(groups)} videos)"
-            else:
-                groups = self._folder_groups(root, directory, split)[:limit]
-                self.source = f"{directory} ({len(groups)} groups)"
-        self.groups = groups
+            self.groups, self.source = self._folder(directory, names, split, difficulty, limit)
         # Fail now, not hours into a run when a broken file is first sampled.
         for path in (p for g in self.groups for p in g):
             _check_image(path)
+
+    @staticmethod
+    def _cached_davis(names: list, split: str) -> list:
+        """--backgrounds davis: the split's videos from the cache, every one of them there."""
+        root = davis_cache() / _DAVIS_FRAMES
+        if not root.is_dir():
+            raise EnvError(f"--backgrounds davis: no DAVIS-2017 in {davis_cache()}; get it "
+                           f"({DAVIS_BYTES / 1e6:.0f} MB) with: python envs.py --fetch-davis")
+        if missing := davis_missing(root, names):
+            raise EnvError(f"--backgrounds davis: {root} lacks {len(missing)} of the {split} videos "
+                           f"({', '.join(missing[:3])}); fetch it again: python envs.py --fetch-davis")
+        return [_images(root / n) for n in names]
+
+    @classmethod
+    def _folder(cls, directory: str, names: list, split: str, difficulty: str, limit) -> tuple[list, str]:
+        """A folder: the DAVIS videos present (a DAVIS root, or its JPEGImages/480p), else every image
+        grouped by parent folder. Returns (groups, source)."""
+        root = Path(directory).expanduser()
+        if not root.is_dir():
+            raise EnvError(f"backgrounds dir {directory!r} does not exist or is not a directory")
+        for davis in (root / _DAVIS_FRAMES, root / _DAVIS_FRAMES.relative_to("DAVIS")):
+            if davis.is_dir():   # a --fetch-davis --cache folder, or the DAVIS root
+                root = davis
+                break
+        subdirs = {p.name for p in root.iterdir() if p.is_dir()}
+        if not subdirs & set(DAVIS17_TRAIN + DAVIS17_VAL):
+            groups = cls._folder_groups(root, directory, split)[:limit]
+            return groups, f"{directory} ({len(groups)} groups)"
+        groups = [g for g in (_images(root / n) for n in names if n in subdirs) if g]
+        if not groups:
+            raise EnvError(f"backgrounds dir {directory!r} looks like DAVIS but holds none of the "
+                           f"{'train' if split == 'train' else 'val'} videos {difficulty} uses")
+        return groups, f"DAVIS 2017 {split} ({len(groups)} videos)"
 
     @staticmethod
     def _folder_groups(root: Path, directory: str, split: str) -> list:
