@@ -288,3 +288,92 @@ def test_the_loop_evaluates_at_one_site_and_stops_at_one_point():
     calls = [n.func for n in ast.walk(loop) if isinstance(n, ast.Call)]
     names = [f.id if isinstance(f, ast.Name) else f.attr for f in calls if isinstance(f, (ast.Name, ast.Attribute))]
     assert names.count("evaluate_and_log") == 1 and names.count("safe_point") == 1
+
+
+# ---------------------------------------------------------------- the harness's weight
+# The harness: the command line, the run directory, the seeds' group and envs, the speed layer
+# (harness/*.py), the sweeps and the plots. Documents: docs/*.md, counted as `wc -w` counts.
+HARNESS_LINES, DOCS_WORDS = 4_500, 25_000
+COMPLEX, MOST_COMPLEX, MOST_COMPLEX_FUNCTIONS = 11, 20, 45  # radon's C starts at 11, its D at 21
+
+
+def harness_files() -> list[Path]:
+    return [*sorted((ROOT / "harness").glob("*.py")), ROOT / "sweep.py", ROOT / "plot.py"]
+
+
+def complexity(fn: ast.AST) -> int:
+    """A function's cyclomatic complexity as radon counts it (`radon cc`; its closures apart): 1, and
+    one more per if, ternary, assert, loop (and loop else), except (and try else), comprehension
+    `for` and its ifs, match case, and each `and`/`or` beyond the first operand."""
+    n, stack = 1, list(ast.iter_child_nodes(fn))
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        if isinstance(node, (ast.If, ast.IfExp, ast.Assert, ast.match_case)):
+            n += 1
+        elif isinstance(node, (ast.For, ast.AsyncFor, ast.While)):
+            n += 1 + bool(node.orelse)
+        elif isinstance(node, ast.Try):
+            n += len(node.handlers) + bool(node.orelse)
+        elif isinstance(node, ast.comprehension):
+            n += 1 + len(node.ifs)
+        elif isinstance(node, ast.BoolOp):
+            n += len(node.values) - 1
+        stack.extend(ast.iter_child_nodes(node))
+    return n
+
+
+def complexities() -> dict[str, int]:
+    """{file:function: complexity} of every function outside tests/ and benchmarks/."""
+    out = {}
+    for p in project_files():
+        if p.relative_to(ROOT).parts[0] in ("tests", "benchmarks"):
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                out[f"{p.relative_to(ROOT)}:{node.lineno}:{node.name}"] = complexity(node)
+    return out
+
+
+def test_the_harness_and_the_documents_keep_their_weight():
+    lines = sum(len(p.read_text().splitlines()) for p in harness_files())
+    words = sum(len(p.read_text().split()) for p in (ROOT / "docs").glob("*.md"))
+    assert lines <= HARNESS_LINES, lines
+    assert words <= DOCS_WORDS, words
+
+
+def test_no_function_outside_tests_and_benchmarks_is_graded_d_or_worse():
+    graded = complexities()
+    assert max(graded.values()) <= MOST_COMPLEX, {k: v for k, v in graded.items() if v > MOST_COMPLEX}
+    assert sum(v >= COMPLEX for v in graded.values()) <= MOST_COMPLEX_FUNCTIONS
+
+
+def test_complexity_counts_as_radon_does():
+    """Counted by hand as radon's rules do (radon cc gives these numbers)."""
+    source = '''
+def f(xs, a, b):
+    if a and b or a:
+        return [x for x in xs if x if a]
+    for x in xs:
+        while x:
+            x -= 1
+        else:
+            pass
+    try:
+        pass
+    except ValueError:
+        pass
+    except KeyError:
+        pass
+    else:
+        pass
+    assert a
+    def inner():
+        if a:
+            pass
+    return 1 if a else 2
+'''
+    (fn,) = ast.parse(source).body
+    # 1 + if 1 + bool ops 2 + comprehension 3 + for 1 + while 2 + excepts 2 + try else 1 + assert 1 + ternary 1
+    assert complexity(fn) == 15
