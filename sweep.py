@@ -42,6 +42,9 @@ from functools import reduce
 import numpy as np
 import submitit
 
+import plot
+from harness import cli
+
 SEAR_PY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "sear.py")
 
 
@@ -171,12 +174,10 @@ def sear_classes():
 
 
 def check_passthrough(tokens: list[str]) -> None:
-    """Exact sear.py flag names only (argparse would take --see for --seed); an unknown one is answered with
-    the closest flag of sweep.py or sear.py: --stauts is a typo of --status."""
+    """Exact sear.py flag names only (argparse would take --see for --seed); a typo gets the closest flag."""
     names = [tok.split("=", 1)[0] for tok in tokens if tok.startswith("--")]
     if not names:
         return  # no sear.py import (torch) for --status / --report without flags
-    from harness import cli
     known = cli.flag_names(sear_classes()[0])
     ours = {s for a in build_parser()._actions for s in a.option_strings}
     for name in names:
@@ -189,9 +190,7 @@ def check_passthrough(tokens: list[str]) -> None:
 
 
 def sear_config(argv: list[str], what: str, quiet: bool = False):
-    """Every setting of a run, as config.json has them, by sear.py's own parser and checks (nothing is created).
-    quiet: without the recipe's notes (printed once)."""
-    from harness import cli
+    """A run's settings as config.json has them, by sear.py's parser and checks; quiet: no recipe notes."""
     import envs
     err = io.StringIO()
     try:
@@ -208,7 +207,6 @@ def sear_config(argv: list[str], what: str, quiet: bool = False):
 
 def config_key(cfg) -> str:
     """8 hex digits naming what differs from sear.py's defaults: new flags leave old keys alone."""
-    from harness import cli
     defaults = cli.config_dict(sear_classes()[0](), cli.RunConfig())
     diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
     return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
@@ -216,7 +214,6 @@ def config_key(cfg) -> str:
 
 def resume_flags(cfg) -> tuple[str, ...]:
     """The config values a resume may change (cli.RESUME_MAY_CHANGE), as flags."""
-    from harness import cli
     flags = []
     for name in sorted(cli.RESUME_MAY_CHANGE - {"resume"}):
         flag, value = cli.flag(name), getattr(cfg, name)
@@ -253,7 +250,6 @@ def chosen_grid(args) -> Grid | None:
 
 def check_names(grid: str, what: str, given: list[str] | None, have) -> None:
     """--envs / --methods pick from a grid's: one it lacks is an error (NAME+drm is NAME's)."""
-    from harness import cli
     extra = [x for x in parse_names(given) or () if x not in have and cli.split_method_label(x)[0] not in have]
     if extra:
         raise SweepError(f"grid '{grid}' has no {what} {extra[0]}; it has {', '.join(have)}"
@@ -261,9 +257,7 @@ def check_names(grid: str, what: str, given: list[str] | None, have) -> None:
 
 
 def chosen_variants(args, grid: Grid | None) -> list[Variant]:
-    """The variants --methods names (all of the grid's without it), in the grid's order; NAME+drm is variant or
-    method NAME run with --drm (drm.py: DrQ becomes DrM, SEAR becomes SEAR + DrM)."""
-    from harness import cli
+    """The variants --methods names (default: the grid's), in the grid's order; NAME+drm adds --drm."""
     wanted = parse_names(args.methods)
     if grid is None:
         variants = [Variant(m, *cli.split_method_label(m)) for m in wanted]
@@ -297,8 +291,6 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
 
 
 # ------------------------------------------------------------------------ 3. packs and memory
-# What one process runs (a job, or a pack of a task and method's seeds as one `sear.py --seeds` process:
-# group.py) and the memory it gets.
 def seed_spec(seeds) -> str:
     """[1, 2, 3, 5] -> '1-3,5': sear.py's --seeds."""
     runs = [[s for _, s in g] for _, g in itertools.groupby(enumerate(seeds), lambda p: p[1] - p[0])]
@@ -307,8 +299,7 @@ def seed_spec(seeds) -> str:
 
 @dataclass(frozen=True)
 class Pack:
-    """What one process runs: a job, or seeds of one (env, variant, key), each seed keeping its own job folder,
-    the process the pack's."""
+    """What one process runs: a job, or seeds of one (env, variant, key), each seed keeping its job folder."""
     specs: tuple[JobSpec, ...]
 
     @property
@@ -330,8 +321,7 @@ class Pack:
 
 
 def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list[Pack]:
-    """What runs: the packs seeds keep (kept_pack), and the other seeds of each (env, variant, key) in order in
-    packs of at most k."""
+    """The packs seeds keep (kept_pack); the other seeds of each (env, variant, key) in packs of at most k."""
     units, fresh = {}, {}
     for spec in todo:
         unit = kept_pack(spec, k, sweep_dir)
@@ -344,8 +334,7 @@ def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list[Pack]:
 
 
 def kept_pack(spec: JobSpec, k: int, sweep_dir: str) -> Pack | None:
-    """The pack a seed keeps: its recorded one (pack.json), or itself where it ran alone (or k is 1); None for a
-    seed never started, to pack anew."""
+    """A seed's recorded pack (pack.json), or itself where it ran alone or k is 1; None: pack it anew."""
     recorded = read_json(os.path.join(sweep_dir, spec.name, PACK_FILE))
     if recorded:
         def with_seed(s):
@@ -396,9 +385,7 @@ def run_memory(cfg) -> tuple[float, float, int, str]:
 
 
 def seeds_per_job(args, engine: str, gpus: int, part: Partition | None, need: float):
-    """(seeds per job, why, jobs at a time the GPUs hold or None): --seeds-per-job; else 1 without a GPU; on
-    SLURM SLURM_SEEDS_PER_JOB, or fewer where a node's memory holds fewer; here as many as the GPU's and this
-    machine's memory hold at `need` GB a seed, at most MOST_SEEDS_PER_JOB, each packed job on GPUs of its own."""
+    """(seeds per job, why, jobs at a time the GPUs hold or None), by the device and its memory."""
     if args.seeds_per_job:
         return args.seeds_per_job, f"--seeds-per-job {args.seeds_per_job}", None
     if not gpus:
@@ -427,9 +414,7 @@ def largest_node(engine: str, part: Partition | None) -> tuple[float | None, str
 
 
 def job_memory(args, node: float | None, have: str, peak: tuple, seeds: int) -> tuple[int, str]:
-    """(GB per job, the line that says it and why): --mem-gb, else the largest run's measured peak plus
-    headroom, times the seeds a job runs; one that no node holds fails here, in one line, with a
-    --seeds-per-job or --replay-size that fits where one does."""
+    """(GB per job, the line that says why): --mem-gb, else the measured peak; too big for a node fails."""
     need = max(1, math.ceil(peak[0] * HEADROOM * seeds))
     how = peak[3] + (f", x {seeds} seeds a job" if seeds > 1 else "")
     if node is not None and (args.mem_gb or need) > node:
@@ -441,8 +426,7 @@ def job_memory(args, node: float | None, have: str, peak: tuple, seeds: int) -> 
 
 
 def memory_hint(node: float, peak: tuple, seeds: int) -> str:
-    """Where a job needs more than a node has: the --seeds-per-job, else the --replay-size, that fits, if one
-    does."""
+    """The --seeds-per-job, else the --replay-size, that fits a node, if one does."""
     peak_gb, agent, held, _ = peak
     fits = int((math.floor(node) / HEADROOM / seeds - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000
     fewer = int(math.floor(node) // (peak_gb * HEADROOM))
@@ -453,8 +437,7 @@ def memory_hint(node: float, peak: tuple, seeds: int) -> str:
 
 def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[JobSpec],
               sweep_dir: str) -> tuple[list[Pack], str, int, int]:
-    """The jobs to run as packs, what the header says of them, the GB each gets and how many run here at a
-    time; prints the memory line."""
+    """(packs, seeds-per-job line, GB per job, jobs at a time here); prints the memory line."""
     distinct = {(s.env, s.variant, s.key): s for s in todo}.values()  # the seed changes nothing
     peak = max(run_memory(sear_config(list(s.args), s.name, quiet=True)) for s in distinct)
     if gpus and not args.seeds_per_job and len(distinct) == len(todo):
@@ -473,9 +456,8 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
 
 
 def check_pack_size(units: list[Pack], engine: str) -> None:
-    """Here, a pack of more seeds than this machine holds (group.check_size: its cores and memory) fails up
-    front, in one line, rather than in each of its jobs."""
-    from harness import cli, group
+    """Here, a pack of more seeds than this machine holds (group.check_size) fails once, up front."""
+    from harness import group
     if engine != "local":
         return
     pack = max(units, key=lambda u: len(u.specs))
@@ -486,8 +468,7 @@ def check_pack_size(units: list[Pack], engine: str) -> None:
 
 
 def local_parallel(args, parallel: int, mem_gb: int, node: float, line: str) -> tuple[int, str]:
-    """Jobs at a time on this machine, fewer where its memory holds fewer (an explicit --jobs is kept, with a
-    note), and the memory line that says so."""
+    """Jobs at a time here, fewer where memory holds fewer (a --jobs is kept, with a note)."""
     if parallel * mem_gb <= node:
         return parallel, line
     if args.jobs:
@@ -520,8 +501,7 @@ def write_json(path: str, data: dict) -> None:
 
 
 def proc_start(pid: int) -> int | None:
-    """A live process's start in clock ticks since boot (it tells a reused pid apart); -1 for a zombie (killed,
-    not yet reaped); None where /proc cannot tell."""
+    """A process's start in clock ticks (tells a reused pid apart); -1 a zombie; None: unknown."""
     try:
         with open(f"/proc/{pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()
@@ -552,8 +532,7 @@ def alive(owner: dict | None) -> bool | None:
 
 
 def pid_alive(pid: int, start: int | None) -> bool:
-    """Whether process `pid` of this host lives, and is the one that started at `start` (not a later process
-    given the same pid, nor a zombie)."""
+    """Whether `pid` of this host lives and is the process that started at `start`, not a zombie."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -579,8 +558,7 @@ def guard(folder: str):
 
 
 def take_lock(job_dir: str, me: dict) -> dict | None:
-    """None if `me` now holds the job's lock, else the live holder. A dead holder, or this very SLURM job before
-    a requeue, is taken over."""
+    """None if `me` now holds the lock, else the live holder; a dead holder or this requeued job is taken over."""
     with guard(job_dir):
         holder = read_json(os.path.join(job_dir, "lock"))
         requeued = holder and me.get("job") and holder.get("job") == me["job"]
@@ -598,8 +576,7 @@ def drop_lock(job_dir: str, me: dict) -> None:
 
 
 def run_dirs(job_dir: str) -> list[str]:
-    """The job's run directories: those in its run/, or, for a seed run by a pack, the seed's run in the group
-    folders of the pack's run/ (their group.json)."""
+    """The job's run directories: its run/'s, or for a packed seed its member of the pack's group folders."""
     pack = read_json(os.path.join(job_dir, PACK_FILE))
     if pack:
         pack_dir = os.path.join(os.path.dirname(os.path.normpath(job_dir)), pack["pack"])
@@ -664,11 +641,8 @@ def status_table(out: str, specs: list[JobSpec]) -> str:
 
 # ------------------------------------------------------------------------ 5. the job
 class SearJob(submitit.helpers.Checkpointable):
-    """One sear.py process, started fresh (sear.py renders with EGL, and a process that rendered must not fork a
-    renderer child), for a job or, given seed_dirs, a pack of seeds run from the pack's folder: it takes every
-    seed's lock (one held by a live process: it skips) and writes every seed's status.json and DONE.
-    Checkpointable: a SLURM job that reaches its time limit is requeued, and this same call then resumes the
-    run (the group folder) from its snapshots."""
+    """A job, or given seed_dirs a pack, as a fresh sear.py process (one that rendered with EGL must not fork a
+    renderer) holding every seed's lock. Checkpointable: requeued at the time limit, the same call resumes."""
 
     def __init__(self, job_dir: str, args: list[str], resume_args: list[str], threads: int, script: str,
                  seed_dirs: list[str] | None = None, devices: str | None = None):
@@ -725,9 +699,7 @@ class SearJob(submitit.helpers.Checkpointable):
         return self.settle(code, attempt, offset)
 
     def command(self, run: str | None) -> tuple[list[str], str]:
-        """(sear.py's command, the line that says a run was moved aside, or ''): the run resumed from its
-        snapshot (a group folder: every member's), else a fresh one, a run that died before its snapshot moved
-        aside first."""
+        """(sear.py's command, a note or ''): resume from the snapshot(s), else start fresh, the run moved aside."""
         members = (read_json(os.path.join(run, GROUP_FILE)) or {}).get("runs", {"": ""}) if run else {}
         if run and all(os.path.exists(os.path.join(run, m, "snapshot.pt")) for m in members.values()):
             return [self.python, self.script, "--resume", run, *self.resume_args], ""
@@ -754,8 +726,7 @@ class SearJob(submitit.helpers.Checkpointable):
         return f"{state}: {error}"
 
     def move_aside(self, run: str) -> str:
-        """<out>/<sweep>/<job>/run/<run> -> <out>/<sweep>.aside/<job>/<run>: out of the sweep's folder, so that
-        plot.py on it does not pick the run up; never over an earlier one."""
+        """<out>/<sweep>/<job>/run/<run> -> <out>/<sweep>.aside/<job>/<run>, never over an earlier one."""
         sweep_dir, job = os.path.split(os.path.normpath(self.job_dir))
         base = os.path.join(f"{sweep_dir}.aside", job, os.path.basename(run))
         dest = next(d for d in itertools.chain([base], (f"{base}~{k}" for k in itertools.count(1)))
@@ -795,8 +766,7 @@ def local_gpus() -> list[str]:
 
 
 def pick_engine(args) -> tuple[str, str]:
-    """(engine, why): --engine, else the one the sweep's folder records, else this machine. Never SLURM because
-    srun happens to be on the PATH: that sent a login node's test sweep to a queue unasked."""
+    """(engine, why): --engine, else the folder's record, else local; never SLURM for srun on the PATH."""
     srun = shutil.which("srun") is not None
     recorded, where = recorded_engine(os.path.join(args.out, args.sweep))
     if args.engine:
@@ -852,16 +822,14 @@ def slurm_partition(partition: str | None) -> Partition | None:
 
 
 def most_of_a_node(rows: list[list[str]]) -> tuple[int, int, int]:
-    """(GPUs, CPUs, memory MB) of the largest node in sinfo's rows: %G 'gpu:4', 'gpu:a100:8(S:0-1)',
-    'gpu:a:2,gpu:b:2,mps:100', '(null)'; %c and %m '64', '64+' (nodes that differ), 'n/a'."""
+    """(GPUs, CPUs, MB) of the largest node in sinfo's rows (%G 'gpu:a100:8(S:0-1)', %c '64+', 'n/a')."""
     gpus = [sum(map(int, re.findall(r"(?:^|,)gpu(?::[^:,(]+)?:(\d+)", row[0]))) for row in rows]
     cpus, mem = ([int(re.match(r"\d*", row[i])[0] or 0) for row in rows] for i in (1, 2))
     return max(gpus), max(cpus), max(mem)
 
 
 def job_gpus(args, engine: str, part: Partition | None) -> tuple[int, str]:
-    """(GPUs per job, what the header says of them): by default 1 where this machine or the partition has GPUs,
-    else none; GPUs or CPUs no node has fail here."""
+    """(GPUs per job, what the header says): default 1 where there are GPUs; more than a node has fails."""
     asked = args.gpus_per_job
     if engine == "local":
         have = len(local_gpus())
@@ -890,18 +858,6 @@ def partition_gpus(args, part: Partition) -> tuple[int, str]:
 
 
 # ------------------------------------------------------------------------ 7. submitit
-def make_executor(args, engine: str, folder: str, gpus: int, mem_gb: int | None):
-    """submitit's executor. Locally each job gets its GPUs through CUDA_VISIBLE_DEVICES (SearJob.devices), not
-    submitit's, which gives every job the same first ones; on SLURM, no GPU request unless there are GPUs."""
-    executor = submitit.AutoExecutor(folder=folder, cluster=engine)
-    params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", mem_gb=mem_gb,
-                  cpus_per_task=args.threads, gpus_per_node=0 if engine == "local" else gpus or None,
-                  slurm_partition=args.partition, slurm_account=args.account,
-                  slurm_array_parallelism=args.slurm_array_parallelism)
-    executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
-    return executor
-
-
 def refusal(error: Exception, stderr: str, jobs: int, mem_gb: int) -> SweepError:
     """sbatch's reason for refusing the array, in one line, with a hint where one helps."""
     lines = [ln.strip() for ln in (str(error) or stderr).splitlines() if ln.strip()]
@@ -931,8 +887,7 @@ def submit(executor, jobs: list[SearJob], mem_gb: int, engine: str, sweep_dir: s
 
 
 def job_devices(gpus: int, have: list[str], slots: int) -> list[str]:
-    """CUDA_VISIBLE_DEVICES of each local job slot: `gpus` per job, round robin over `have`; no GPU
-    (--gpus-per-job 0, or none here): on the CPU."""
+    """CUDA_VISIBLE_DEVICES of each local job slot: `gpus` per job, round robin over `have`."""
     return [",".join(have[(s * gpus + i) % len(have)] for i in range(gpus)) for s in range(slots)]
 
 
@@ -978,8 +933,7 @@ def read_record(sweep_dir: str) -> list[dict]:
 
 
 def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
-    """(engine, where it is written) of a sweep folder: its record, else (folders from before the record named
-    it) a job queued or run on SLURM; (None, "") for a new folder."""
+    """(engine, where it is written) of a sweep folder: its record, else jobs that went to SLURM."""
     engine = (read_json(os.path.join(sweep_dir, RECORD)) or {}).get("engine")
     if engine in ("local", "slurm"):
         return engine, f"{os.path.join(sweep_dir, RECORD)} records it"
@@ -991,8 +945,7 @@ def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
 
 
 def record_sweep(sweep_dir: str, args, specs: list[JobSpec], engine: str) -> None:
-    """Add `specs` to the folder's record under their grid and sear.py flags: the same sweep run again (say for
-    more seeds) adds to its entry, other flags make another, and a note says so."""
+    """Add `specs` to the folder's record, in the entry of their grid and sear.py flags."""
     os.makedirs(sweep_dir, exist_ok=True)
     with guard(sweep_dir):  # two drivers submitting to one folder at once both end up in the record
         sweeps = read_record(sweep_dir)
@@ -1021,8 +974,7 @@ def folder_specs(sweep_dir: str) -> list[JobSpec]:
 
 
 def listed(args, verb: str, sweep: str, entries: list[dict]) -> str:
-    """The sweep.py lines that show each sweep of a folder, --status or --report with its flags, and how many
-    jobs each has."""
+    """The sweep.py commands that show each sweep of a folder, with how many jobs each has."""
     def command(entry):
         grid, flags = entry.get("grid"), entry.get("flags")
         line = ["python", "sweep.py", *(["--out", args.out] if args.out != "sweeps" else []),
@@ -1041,9 +993,7 @@ def flag_set(flags: list[str]) -> list[tuple[str, ...]]:
 
 
 def find_sweep(args, verb: str) -> tuple[list[JobSpec], Grid | None]:
-    """--status / --report: the jobs of the sweep in --out/--name (or --grid) from the folder's record, its flags
-    not given again; --envs, --methods and --seeds pick a subset. A folder without the record (from before it
-    was kept): the jobs its job.json files name."""
+    """--status / --report: the recorded jobs of the sweep in --out/--name (or --grid), or its job.json's."""
     sweep = sweep_name(args)
     folder = os.path.join(args.out, sweep)
     entries = read_record(folder)
@@ -1060,9 +1010,7 @@ def find_sweep(args, verb: str) -> tuple[list[JobSpec], Grid | None]:
 
 
 def pick_entry(args, verb: str, sweep: str, folder: str, entries: list[dict]) -> dict:
-    """The sweep of a folder's record that --grid and the flags after -- name, in any spelling and order (none:
-    the one run without any, or the only one; a note names the others); one line naming the folder's sweeps
-    and the command that shows each when they name none, or several."""
+    """The recorded sweep --grid and the flags after -- name (none: the one without flags, or the only one)."""
     chosen, same = matching(args, entries)
     if not chosen:
         raise SweepError(f"{folder} holds no sweep of grid {args.grid}; it holds: "
@@ -1105,9 +1053,7 @@ def dm_control_max(config: dict) -> float:
 
 
 def normalisation(env: str, runs: list[dict], metric: str) -> tuple[list[tuple[float, float]], str]:
-    """(low, high) of each run's scores, so that (score - low) / (high - low) compares across tasks, and what the
-    report says: success rates as they are, dm_control returns by the task's maximum, any other return min-max
-    over this sweep's evaluations of the task."""
+    """(low, high) of each run's scores, to compare across tasks, and what the report says of it."""
     import envs
     if metric == "success":
         return [(0.0, 1.0)] * len(runs), "success rate, as it is"
@@ -1123,10 +1069,7 @@ def normalisation(env: str, runs: list[dict], metric: str) -> tuple[list[tuple[f
 
 
 def finished_runs(out: str, specs: list[JobSpec], metric: str | None) -> tuple[str, dict, int]:
-    """The metric (None: a success rate where every finished run has one, else the return), the finished runs'
-    eval.csv curves, {(env, variant): {seed: plot.load_run()}} (one that cannot be read is skipped with one
-    line), and how many finished."""
-    import plot
+    """(metric, {(env, variant): {seed: plot.load_run()}} of the finished runs, how many finished)."""
     finished = [(s, run_dirs(os.path.join(out, s.sweep, s.name))) for s in specs
                 if is_done(os.path.join(out, s.sweep, s.name))]
     finished = [(s, runs[0]) for s, runs in finished if len(runs) == 1]
@@ -1149,8 +1092,7 @@ def report_metric(runs: list[str]) -> str:
 
 
 def normalised(runs: dict, envs: list[str], metric: str) -> tuple[dict, dict]:
-    """Per task how its scores are normalised (normalisation(), every method's runs of it together), and
-    {(env, variant): {seed: (frames, normalised scores)}}."""
+    """Per task how its scores are normalised, and {(env, variant): {seed: (frames, scores)}}."""
     how, norm = {}, {}
     for env in envs:
         members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env for seed, r in by_seed.items()]
@@ -1160,18 +1102,13 @@ def normalised(runs: dict, envs: list[str], metric: str) -> tuple[dict, dict]:
     return how, norm
 
 
-def iqm_and_mean(x: np.ndarray) -> np.ndarray:
-    """rliable's aggregate_iqm (scipy's trim_mean: 25% off each end) and mean of (runs, tasks, frames) scores,
-    at every frame."""
-    from scipy import stats
-    flat = x.reshape(-1, x.shape[-1])
-    return np.concatenate([stats.trim_mean(flat, 0.25, axis=0), flat.mean(axis=0)])
-
-
 def across_tasks(norm: dict, envs: list[str], variants: list[str]) -> tuple[dict, list[str]]:
-    """rliable's IQM and mean of the normalised scores over the tasks, with their stratified-bootstrap 95% CIs
-    (seeds resampled within each task): the aggregate panel's lines and the table's rows."""
-    import plot
+    """rliable's IQM and mean over the tasks, stratified-bootstrap 95% CIs: the panel's lines, table rows."""
+    from scipy import stats
+
+    def iqm_and_mean(x):  # rliable's aggregate_iqm (scipy's trim_mean, 25% off each end) and mean, per frame
+        flat = x.reshape(-1, x.shape[-1])
+        return np.concatenate([stats.trim_mean(flat, 0.25, axis=0), flat.mean(axis=0)])
     shared = {v: shared_scores(norm, envs, v) for v in variants}
     shared = {v: s for v, s in shared.items() if s[2] is not None}
     point, ci = plot.bootstrap({v: s[2] for v, s in shared.items()}, iqm_and_mean) if shared else ({}, {})
@@ -1185,8 +1122,7 @@ def across_tasks(norm: dict, envs: list[str], variants: list[str]) -> tuple[dict
 
 
 def shared_scores(norm: dict, envs: list[str], v: str):
-    """(seeds, frames, scores (seeds, tasks, frames)) of a method over the seeds finished on every task, at the
-    evaluations they all share; scores None where they share none."""
+    """(seeds, frames, scores) of a method's seeds finished on every task at their shared evaluations."""
     seeds = sorted(set.intersection(*(set(norm.get((e, v), {})) for e in envs)))
     curves = [norm[(e, v)][s] for s in seeds for e in envs]
     frames = reduce(np.intersect1d, [f for f, _ in curves]) if seeds else np.array([])
@@ -1199,10 +1135,7 @@ def shared_scores(norm: dict, envs: list[str], v: str):
 
 
 def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> str | None:
-    """Per task each method's mean over seeds (raw scores) and its 95% CI; over the tasks the IQM and mean of the
-    normalised scores (across_tasks). Only finished runs count. Writes <out>/<sweep>/report.png and report.md;
-    returns the tables."""
-    import plot
+    """Writes <out>/<sweep>/report.png and report.md of the finished runs; returns the tables."""
     metric, runs, finished = finished_runs(out, specs, metric)
     envs = [e for e in dict.fromkeys(s.env for s in specs) if any(k[0] == e for k in runs)]
     if not envs:
@@ -1228,7 +1161,6 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
 
 def draw_report(png: str, sweep: str, metric: str, panels: dict, lines: dict) -> None:
     """report.png: a panel per task (raw scores), and one of the IQM over the tasks."""
-    import plot
     overall = f"over {plural(len(panels), 'task')}"
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     plot.plot({**panels, overall: lines} if lines else panels, png, ylabel,
@@ -1240,7 +1172,6 @@ def draw_report(png: str, sweep: str, metric: str, panels: dict, lines: dict) ->
 
 def task_lines(runs: dict, env: str, variants: list[str]) -> dict:
     """A task's panel: each method's mean over its finished seeds and its CI (plot.aggregate)."""
-    import plot
     lines = {}
     for v in (v for v in variants if runs.get((env, v))):
         curves = [(r["frames"], r["values"]) for r in runs[(env, v)].values()]
@@ -1251,7 +1182,6 @@ def task_lines(runs: dict, env: str, variants: list[str]) -> dict:
 # ------------------------------------------------------------------------ 10. command line
 def build_parser() -> argparse.ArgumentParser:
     """sweep.py's flags; a bad one is a cli.ConfigError (one line). No abbreviations: --seed is sear.py's."""
-    from harness import cli
     p = cli.OneLineParser(prog="sweep.py", allow_abbrev=False, description=__doc__,
                           formatter_class=argparse.RawDescriptionHelpFormatter,
                           epilog="Unknown flags, and everything after --, go to sear.py.")
@@ -1289,7 +1219,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from harness import cli
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)
     try:
@@ -1312,8 +1241,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def submitted_sweep(args) -> tuple[list[JobSpec], Grid | None]:
-    """--status / --report: the sweep --out and --name (or --grid) name, or, given neither, the sweep's folder
-    this is run in; its jobs from its record (find_sweep)."""
+    """--status / --report: the sweep --out and --name name, else the sweep folder this is run in."""
     if args.out is None and args.name is None and (os.path.exists(RECORD) or folder_specs(".")):
         args.out, args.name = os.path.split(os.getcwd())
     args.out, args.sweep = args.out or "sweeps", sweep_name(args)
@@ -1321,8 +1249,7 @@ def submitted_sweep(args) -> tuple[list[JobSpec], Grid | None]:
 
 
 def run(args, specs: list[JobSpec], metric: str | None, engine: str, why: str) -> int:
-    """The jobs neither done nor running elsewhere: run here (then the report) or submitted to SLURM; --dry-run
-    prints them. 0 when every job run here finished, 1 if one failed."""
+    """Run the jobs neither done nor running elsewhere, here or on SLURM; 1 if one run here failed."""
     sweep_dir = os.path.join(args.out, args.sweep)
     done, busy, todo = job_states(specs, sweep_dir)
     part = slurm_partition(args.partition) if engine == "slurm" else None
@@ -1368,7 +1295,13 @@ def launch(args, specs: list[JobSpec], metric: str | None, engine: str, plan_: t
     units, gpus, mem_gb, parallel = plan_
     sweep_dir = os.path.join(args.out, args.sweep)
     jobs = {u: new_job(sweep_dir, u, args.threads) for u in units}
-    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
+    executor = submitit.AutoExecutor(folder=os.path.join(sweep_dir, ".submitit"), cluster=engine)
+    params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", mem_gb=mem_gb, cpus_per_task=args.threads,
+                  # locally SearJob.devices gives each job its GPUs; submitit's gives all the same first ones
+                  gpus_per_node=0 if engine == "local" else gpus or None,  # on SLURM none asked without GPUs
+                  slurm_partition=args.partition, slurm_account=args.account,
+                  slurm_array_parallelism=args.slurm_array_parallelism)
+    executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
     if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that they need
         import cloudpickle                # no `import sweep` from whatever their cwd is
         cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
@@ -1378,8 +1311,7 @@ def launch(args, specs: list[JobSpec], metric: str | None, engine: str, plan_: t
 
 
 def run_here(args, specs: list[JobSpec], metric: str | None, executor, jobs: dict, devices: list[str]) -> int:
-    """The jobs on this machine, one per device slot at a time, then how many finished and the report. 1 if one
-    failed; 130 on Ctrl-C."""
+    """The jobs on this machine, then the report; 1 if one failed, 130 on Ctrl-C."""
     driver = whoami()
     for job_dir in (d for job in jobs.values() for d in job.state_dirs()):
         mark_queued(job_dir, driver)
