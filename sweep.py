@@ -44,6 +44,7 @@ import submitit
 
 import plot
 from harness import cli
+from harness.process import usable_cores
 
 SEAR_PY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "sear.py")
 
@@ -448,7 +449,7 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
     check_pack_size(units, engine)
     node, have = largest_node(engine, part)
     mem_gb, line = job_memory(args, node, have, peak, max(len(u.specs) for u in units))
-    parallel = args.jobs or min(max(1, cpu_count() // args.threads), slots or math.inf)
+    parallel = args.jobs or min(max(1, usable_cores() // args.threads), slots or math.inf)
     if engine == "local":
         parallel, line = local_parallel(args, parallel, mem_gb, node, line)
     print(line)
@@ -750,10 +751,6 @@ def new_job(sweep_dir: str, unit: Pack, threads: int) -> SearJob:
 
 
 # ------------------------------------------------------------------------ 6. where the jobs run
-def cpu_count() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def local_memory_gb() -> float:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
 
@@ -803,8 +800,7 @@ Partition = collections.namedtuple("Partition", "name gpus cpus mem_mb")
 def sinfo_rows() -> list[list[str]]:
     """sinfo's rows, [partition (the default one ends in *), GPUs, CPUs, memory MB]; none without sinfo."""
     try:
-        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c|%m"], capture_output=True, text=True,
-                           timeout=60)
+        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c|%m"], capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired):
         return []
     return [ln.split("|") for ln in r.stdout.splitlines() if ln.count("|") == 3] if r.returncode == 0 else []
