@@ -42,6 +42,10 @@ from functools import reduce
 import numpy as np
 import submitit
 
+import plot
+from harness import cli
+from harness.process import usable_cores
+
 SEAR_PY = os.path.join(os.path.dirname(os.path.abspath(__file__)), "sear.py")
 
 
@@ -60,9 +64,9 @@ class Grid:
     variants: tuple[Variant, ...]
     metric: str                # what the report plots: success (manipulation suites) or return
     doc: str
-    # The authors' task cfgs (sear/cfgs/task/{metaworld,kitchen,adroit,distracting}.yaml) all train
-    # for num_train_frames 2.5M, the std decaying over 500k agent steps (sear.py's default). Every
-    # grid runs the paper's recipe; add `--recipe authors` for the authors' released values.
+    # The authors' task cfgs (sear/cfgs/task/{metaworld,kitchen,adroit,distracting}.yaml) all train for
+    # num_train_frames 2.5M, the std decaying over 500k agent steps (sear.py's default). Every grid runs the
+    # paper's recipe; add `--recipe authors` for the authors' released values.
     flags: tuple[str, ...] = ("--frames", "2500000")   # budgets shared by every run of the grid
     seeds: tuple[int, ...] = (1, 2, 3, 4, 5)
 
@@ -70,11 +74,10 @@ class Grid:
 BASELINES = tuple(Variant(m, m) for m in ("sear", "drq", "ae", "mae", "curl"))
 DEAR = (Variant("dear", "dear"), Variant("dear-push", "dear", ("--dear-feature", "push")),
         Variant("sear", "sear"), Variant("drq", "drq"))
-# The authors' MT10_CUSTOMIZED (sear/environments/metaworld_custom_envs.py), in their order; the
-# ablations run on their 3-task subset (MT3_CUSTOMIZED).
-METAWORLD10 = ("button-press-topdown-wall", "door-open", "door-unlock", "door-lock",
-               "button-press-wall", "assembly", "hammer", "handle-pull", "door-close",
-               "coffee-button")
+# The authors' MT10_CUSTOMIZED (sear/environments/metaworld_custom_envs.py), in their order; the ablations run
+# on their 3-task subset (MT3_CUSTOMIZED).
+METAWORLD10 = ("button-press-topdown-wall", "door-open", "door-unlock", "door-lock", "button-press-wall",
+               "assembly", "hammer", "handle-pull", "door-close", "coffee-button")
 ABLATION_TASKS = ("button-press-topdown-wall", "door-open", "hammer")
 KITCHEN = ("kitchen-kettle", "kitchen-light", "kitchen-slider")
 DISTRACTING = ("walker-walk-distracting", "cup-catch-distracting")
@@ -82,12 +85,12 @@ GRIDS = {
     "metaworld10": Grid(tuple(f"metaworld-{t}" for t in METAWORLD10), BASELINES, "success",
                         "10 Meta-World tasks (the authors' MT10-customized set)"),
     "kitchen": Grid(KITCHEN, BASELINES, "success", "Franka Kitchen kettle, light, slider"),
-    "adroit": Grid(("adroit-door", "adroit-hammer", "adroit-pen", "adroit-relocate"), BASELINES,
-                   "success", "the 4 Adroit hand tasks"),
-    # distracting.yaml: difficulty medium, background distraction only (sear.py's defaults);
-    # walker's 1-step returns and batch 512 are the authors' recipe (--recipe authors).
-    "distracting": Grid(DISTRACTING, BASELINES, "return", "Distracting Control walker-walk and "
-                        "cup-catch (add --backgrounds davis for the paper's DAVIS videos)"),
+    "adroit": Grid(("adroit-door", "adroit-hammer", "adroit-pen", "adroit-relocate"), BASELINES, "success",
+                   "the 4 Adroit hand tasks"),
+    # distracting.yaml: difficulty medium, background distraction only (sear.py's defaults); walker's 1-step
+    # returns and batch 512 are the authors' recipe (--recipe authors).
+    "distracting": Grid(DISTRACTING, BASELINES, "return", "Distracting Control walker-walk and cup-catch (add "
+                        "--backgrounds davis for the paper's DAVIS videos)"),
     "ablations": Grid(
         tuple(f"metaworld-{t}" for t in ABLATION_TASKS), (
             Variant("sear", "sear"), Variant("drq", "drq"),
@@ -99,24 +102,22 @@ GRIDS = {
             Variant("sear-no-recon", "sear", ("--recon-coef", "0")),
             Variant("sear-no-mask", "sear", ("--mask-coef", "0"))),
         "success", "noisy / approximate masks, rgbm, no split, c1/c2 on 3 Meta-World tasks"),
-    # Beyond the paper: DEAR (Pore et al. 2024) on its two benchmarks, with both signs of its cosine
-    # term (the released code pulls the halves together, its paper separates them: docs/dear.md).
-    "dear": Grid(DISTRACTING, DEAR, "return", "DEAR (both signs) beside SEAR and DrQ-v2 on "
-                 "Distracting Control walker-walk, cup-catch"),
-    "dear-kitchen": Grid(KITCHEN, DEAR, "success", "DEAR (both signs) beside SEAR and DrQ-v2 on "
-                         "Franka Kitchen kettle, light, slider"),
-    # What do the masks buy? SEAR learns the robot from simulator masks, Ego-Foresight
-    # (foresight.py) from its own motion, DrQ-v2 not at all; EF at its release's latent (hs_dim
-    # 2048). One metric for both suites: return.
+    # Beyond the paper: DEAR (Pore et al. 2024) on its two benchmarks, with both signs of its cosine term (the
+    # released code pulls the halves together, its paper separates them: docs/dear.md).
+    "dear": Grid(DISTRACTING, DEAR, "return", "DEAR (both signs) beside SEAR and DrQ-v2 on Distracting Control "
+                 "walker-walk, cup-catch"),
+    "dear-kitchen": Grid(KITCHEN, DEAR, "success", "DEAR (both signs) beside SEAR and DrQ-v2 on Franka Kitchen "
+                         "kettle, light, slider"),
+    # What do the masks buy? SEAR learns the robot from simulator masks, Ego-Foresight (foresight.py) from its
+    # own motion, DrQ-v2 not at all; EF at its release's latent (hs_dim 2048). One metric for both suites.
     "masks": Grid(("walker-walk-distracting", "metaworld-door-open"), (
-        Variant("sear", "sear"), Variant("ef", "ef", ("--latent-dim", "2048")),
-        Variant("drq", "drq")), "return", "SEAR (masks) beside Ego-Foresight (no masks) and DrQ-v2 "
-        "on walker-walk-distracting, metaworld-door-open"),
+        Variant("sear", "sear"), Variant("ef", "ef", ("--latent-dim", "2048")), Variant("drq", "drq")),
+        "return", "SEAR (masks) beside Ego-Foresight (no masks) and DrQ-v2 on walker-walk-distracting, "
+        "metaworld-door-open"),
 }
 # Named so that asking for them gives a clear answer instead of "unknown grid".
-NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) "
-                       "are two dependent stages; run them with sear.py as EXPERIMENTS.md, "
-                       "'Multi-task and transfer', shows"}
+NOT_YET = {"transfer": "pre-training on metaworld-mt10 and then fine-tuning from it (--init-from) are two "
+                       "dependent stages; run them with sear.py as EXPERIMENTS.md, 'Multi-task and transfer', shows"}
 
 
 # ------------------------------------------------------------------------ 2. from flags to jobs
@@ -146,8 +147,8 @@ RESERVED = {"--env": "--envs", "--method": "--methods", "--seed": "--seeds", "--
             "--resume": "re-running the sweep, which resumes interrupted runs",
             "--evaluate": "python sear.py --evaluate on a run directory of the sweep"}
 # Config fields that do not change the experiment, so they do not change the job's key.
-UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "threads", "log_every",
-           "save_buffer", "compile", "cuda_graph", "cuda_graphs", "batch_seeds"}
+UNKEYED = {"env", "method", "seed", "run_root", "resume", "device", "threads", "log_every", "save_buffer",
+           "compile", "cuda_graph", "cuda_graphs", "batch_seeds"}
 
 
 def parse_seeds(tokens: list[str]) -> tuple[int, ...]:
@@ -164,9 +165,7 @@ def parse_seeds(tokens: list[str]) -> tuple[int, ...]:
 
 
 def parse_names(tokens: list[str] | None) -> tuple[str, ...] | None:
-    if tokens:
-        return tuple(dict.fromkeys(t for t in re.split(r"[,\s]+", " ".join(tokens)) if t))
-    return None
+    return tuple(dict.fromkeys(t for t in re.split(r"[,\s]+", " ".join(tokens)) if t)) if tokens else None
 
 
 def sear_classes():
@@ -176,12 +175,10 @@ def sear_classes():
 
 
 def check_passthrough(tokens: list[str]) -> None:
-    """Exact sear.py flag names only (argparse would take --see for --seed); a name neither sweep.py
-    nor sear.py has is answered with the closest of both: --stauts is a typo of --status."""
+    """Exact sear.py flag names only (argparse would take --see for --seed); a typo gets the closest flag."""
     names = [tok.split("=", 1)[0] for tok in tokens if tok.startswith("--")]
     if not names:
         return  # no sear.py import (torch) for --status / --report without flags
-    from harness import cli
     known = cli.flag_names(sear_classes()[0])
     ours = {s for a in build_parser()._actions for s in a.option_strings}
     for name in names:
@@ -194,9 +191,7 @@ def check_passthrough(tokens: list[str]) -> None:
 
 
 def sear_config(argv: list[str], what: str, quiet: bool = False):
-    """sear.py's own parser and checks on argv (nothing is created), and the env name by envs.py:
-    every setting, as config.json has them. quiet: without the recipe's notes (printed once)."""
-    from harness import cli
+    """A run's settings as config.json has them, by sear.py's parser and checks; quiet: no recipe notes."""
     import envs
     err = io.StringIO()
     try:
@@ -205,8 +200,7 @@ def sear_config(argv: list[str], what: str, quiet: bool = False):
             cfg, run, _ = cli.parse_args(argv, *sear_classes())
         envs.default_action_repeat(cfg.env)    # unknown env names fail here, not hours later
     except SystemExit:
-        raise SweepError(f"sear.py rejects {what}: "
-                         f"{err.getvalue().strip().removeprefix('sear.py: error: ')}")
+        raise SweepError(f"sear.py rejects {what}: {err.getvalue().strip().removeprefix('sear.py: error: ')}")
     except (cli.ConfigError, envs.EnvError) as e:
         raise SweepError(f"sear.py rejects {what}: {e}")
     return types.SimpleNamespace(**cli.config_dict(cfg, run))
@@ -214,7 +208,6 @@ def sear_config(argv: list[str], what: str, quiet: bool = False):
 
 def config_key(cfg) -> str:
     """8 hex digits naming what differs from sear.py's defaults: new flags leave old keys alone."""
-    from harness import cli
     defaults = cli.config_dict(sear_classes()[0](), cli.RunConfig())
     diff = {k: v for k, v in vars(cfg).items() if k not in UNKEYED and v != defaults[k]}
     return hashlib.sha1(json.dumps(diff, sort_keys=True).encode()).hexdigest()[:8]
@@ -222,14 +215,10 @@ def config_key(cfg) -> str:
 
 def resume_flags(cfg) -> tuple[str, ...]:
     """The config values a resume may change (cli.RESUME_MAY_CHANGE), as flags."""
-    from harness import cli
     flags = []
     for name in sorted(cli.RESUME_MAY_CHANGE - {"resume"}):
-        flag, value = "--" + name.replace("_", "-"), getattr(cfg, name)
-        if isinstance(value, bool):
-            flags.append(flag if value else f"--no-{flag[2:]}")
-        else:
-            flags += [flag, str(value)]
+        flag, value = cli.flag(name), getattr(cfg, name)
+        flags += ([flag if value else f"--no-{flag[2:]}"] if isinstance(value, bool) else [flag, str(value)])
     return tuple(flags)
 
 
@@ -241,8 +230,7 @@ def sweep_name(args) -> str:
     """The sweep's folder under --out: --name, else the grid's name, else custom."""
     sweep = args.name or args.grid or "custom"
     if not SAFE_NAME.fullmatch(sweep) or sweep.endswith(".aside"):
-        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_', '+' or '-' (and not "
-                         "end in .aside)")
+        raise SweepError(f"--name '{sweep}' must be letters, digits, '.', '_', '+' or '-' (and not end in .aside)")
     return sweep
 
 
@@ -263,24 +251,19 @@ def chosen_grid(args) -> Grid | None:
 
 def check_names(grid: str, what: str, given: list[str] | None, have) -> None:
     """--envs / --methods pick from a grid's: one it lacks is an error (NAME+drm is NAME's)."""
-    from harness import cli
-    extra = [x for x in parse_names(given) or ()
-             if x not in have and cli.split_method_label(x)[0] not in have]
+    extra = [x for x in parse_names(given) or () if x not in have and cli.split_method_label(x)[0] not in have]
     if extra:
         raise SweepError(f"grid '{grid}' has no {what} {extra[0]}; it has {', '.join(have)}"
                          + (" (each also as NAME+drm)" if what == "method" else ""))
 
 
 def chosen_variants(args, grid: Grid | None) -> list[Variant]:
-    """The variants --methods names (all of the grid's without it), in the grid's order; NAME+drm is
-    variant or method NAME run with --drm (drm.py: DrQ becomes DrM, SEAR becomes SEAR + DrM)."""
-    from harness import cli
+    """The variants --methods names (default: the grid's), in the grid's order; NAME+drm adds --drm."""
     wanted = parse_names(args.methods)
     if grid is None:
         variants = [Variant(m, *cli.split_method_label(m)) for m in wanted]
     else:
-        with_drm = [(v, Variant(v.label + cli.DRM_SUFFIX, v.method, (*v.flags, "--drm")))
-                    for v in grid.variants]
+        with_drm = [(v, Variant(v.label + cli.DRM_SUFFIX, v.method, (*v.flags, "--drm"))) for v in grid.variants]
         variants = [x for pair in with_drm for x in pair if x.label in (wanted or [pair[0].label])]
     for v in variants:
         if not SAFE_NAME.fullmatch(v.label):
@@ -297,32 +280,27 @@ def plan(args, passthrough: list[str]) -> tuple[str, list[JobSpec], Grid | None]
     specs = []
     for env in parse_names(args.envs) or grid.envs:
         for v in variants:
-            # Grid budgets first, then the variant's settings; the user's flags win. A grid's flag
-            # that does nothing for this method is dropped (one line in its log).
+            # Grid budgets first, then the variant's settings; the user's flags win. A grid's flag that does
+            # nothing for this method is dropped (one line in its log).
             flags = [*(grid.flags if grid else ()), *v.flags, *passthrough]
             base = ["--env", env, "--method", v.method, "--drop-inapplicable"]
             cfg = sear_config([*base, "--seed", str(seeds[0]), *flags], f"{env} {v.label}")
             key, resume = config_key(cfg), resume_flags(cfg)
-            specs += [JobSpec(sweep, env, v.label, seed, key, cfg.frames,
-                              (*base, "--seed", str(seed), *flags), resume) for seed in seeds]
+            specs += [JobSpec(sweep, env, v.label, seed, key, cfg.frames, (*base, "--seed", str(seed), *flags),
+                              resume) for seed in seeds]
     return sweep, specs, grid
 
 
 # ------------------------------------------------------------------------ 3. packs and memory
-# What one process runs (a job, or a pack of a task and method's seeds as one `sear.py --seeds`
-# process: group.py) and the memory it gets.
 def seed_spec(seeds) -> str:
     """[1, 2, 3, 5] -> '1-3,5': sear.py's --seeds."""
-    runs = [[s] for s in seeds[:1]]
-    for s in seeds[1:]:
-        runs[-1:] = [[*runs[-1], s]] if s == runs[-1][-1] + 1 else [runs[-1], [s]]
+    runs = [[s for _, s in g] for _, g in itertools.groupby(enumerate(seeds), lambda p: p[1] - p[0])]
     return ",".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
 
 
 @dataclass(frozen=True)
 class Pack:
-    """What one process runs: a job, or seeds of one (env, variant, key), each seed keeping its own
-    job folder, the process the pack's."""
+    """What one process runs: a job, or seeds of one (env, variant, key), each seed keeping its job folder."""
     specs: tuple[JobSpec, ...]
 
     @property
@@ -332,9 +310,7 @@ class Pack:
     @property
     def name(self) -> str:
         s = self.specs[0]
-        if len(self.specs) == 1:
-            return s.name
-        return f"{s.env}__{s.variant}__seeds{seed_spec(self.seeds)}__{s.key}"
+        return s.name if len(self.specs) == 1 else f"{s.env}__{s.variant}__seeds{seed_spec(self.seeds)}__{s.key}"
 
     @property
     def args(self) -> tuple[str, ...]:
@@ -345,15 +321,8 @@ class Pack:
         return tuple(args)
 
 
-def with_seed(spec: JobSpec, seed: int) -> JobSpec:
-    args = list(spec.args)
-    args[args.index("--seed") + 1] = str(seed)
-    return dataclasses.replace(spec, seed=seed, args=tuple(args))
-
-
 def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list[Pack]:
-    """What runs: the packs seeds keep (kept_pack), and the other seeds of each (env, variant, key)
-    in order in packs of at most k."""
+    """The packs seeds keep (kept_pack); the other seeds of each (env, variant, key) in packs of at most k."""
     units, fresh = {}, {}
     for spec in todo:
         unit = kept_pack(spec, k, sweep_dir)
@@ -366,11 +335,14 @@ def packs(todo: list[JobSpec], k: int, sweep_dir: str) -> list[Pack]:
 
 
 def kept_pack(spec: JobSpec, k: int, sweep_dir: str) -> Pack | None:
-    """The pack a seed keeps: its recorded one (pack.json), or itself where it ran alone (or k is
-    1); None for a seed never started, to pack anew."""
+    """A seed's recorded pack (pack.json), or itself where it ran alone or k is 1; None: pack it anew."""
     recorded = read_json(os.path.join(sweep_dir, spec.name, PACK_FILE))
     if recorded:
-        return Pack(tuple(with_seed(spec, s) for s in recorded["seeds"]))
+        def with_seed(s):
+            args = list(spec.args)
+            args[args.index("--seed") + 1] = str(s)
+            return dataclasses.replace(spec, seed=s, args=tuple(args))
+        return Pack(tuple(map(with_seed, recorded["seeds"])))
     return Pack((spec,)) if run_dirs(os.path.join(sweep_dir, spec.name)) or k == 1 else None
 
 
@@ -384,20 +356,19 @@ def packing_line(units: list[Pack], k: int, why: str) -> str:
     return f"{plural(most, 'seed')} per job ({why})"
 
 
-# What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the
-# CPU): 0.89 GB until the first update, 2.66 GB at the peak of SEAR's batch-256 updates, the replay
-# still nearly empty; then the replay, ReplayBuffer.bytes_per_transition for each transition it
-# holds. The DrQ encoder's methods (drq, rgbm) peak 0.65 GB lower (bench_agent.py's peak RSS at
-# batch 256: drq 1.52, sear 2.17 GB); the other methods, unmeasured, count as SEAR. What the updates
-# add scales with the batch.
+# What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the CPU): 0.89 GB
+# until the first update, 2.66 GB at the peak of SEAR's batch-256 updates, the replay still nearly empty; then
+# the replay, ReplayBuffer.bytes_per_transition for each transition it holds. The DrQ encoder's methods (drq,
+# rgbm) peak 0.65 GB lower (bench_agent.py's peak RSS at batch 256: drq 1.52, sear 2.17 GB); the other
+# methods, unmeasured, count as SEAR. What the updates add scales with the batch.
 START_GB = 0.89
 PEAK_GB = {"pooled": 2.66, "drq": 2.66 - 0.65}  # by sear.METHODS' encoder, at batch 256
 # per transition at 84x84 with Adroit's 28 actions, the most of any task (walker: 22,080)
 REPLAY_BYTES = 22_168
 # one run's peak; another task, renderer or allocator's slack moves it: a quarter more
 HEADROOM = 1.25
-# Seeds per job on SLURM with GPUs, where the GPU's memory cannot be seen at submission: few enough
-# for any GPU a partition of the paper's runs has (4 default runs: about 33 GB by run_memory).
+# Seeds per job on SLURM with GPUs, where the GPU's memory cannot be seen at submission: few enough for any
+# GPU a partition of the paper's runs has (4 default runs: about 33 GB by run_memory).
 SLURM_SEEDS_PER_JOB, MOST_SEEDS_PER_JOB = 4, 16
 
 
@@ -406,39 +377,32 @@ def run_memory(cfg) -> tuple[float, float, int, str]:
     import envs
     encoder = sear_classes()[1][cfg.method].encoder
     agent = START_GB + (PEAK_GB[encoder] - START_GB) * cfg.batch_size / 256
-    held = min(cfg.replay_size,
-               cfg.frames // (cfg.action_repeat or envs.default_action_repeat(cfg.env)))
+    held = min(cfg.replay_size, cfg.frames // (cfg.action_repeat or envs.default_action_repeat(cfg.env)))
     scaled = "" if cfg.batch_size == 256 else f" scaled to batch {cfg.batch_size}"
-    how = (f"{cfg.method}: {'drq' if encoder == 'drq' else 'sear'}'s measured peak at batch "
-           f"256{scaled}, {agent:.2f} GB, + a replay of {held:,} transitions x "
-           f"{REPLAY_BYTES / 1e3:.0f} kB, {held * REPLAY_BYTES / 1e9:.2f} GB, + {HEADROOM - 1:.0%}")
+    how = (f"{cfg.method}: {'drq' if encoder == 'drq' else 'sear'}'s measured peak at batch 256{scaled}, "
+           f"{agent:.2f} GB, + a replay of {held:,} transitions x {REPLAY_BYTES / 1e3:.0f} kB, "
+           f"{held * REPLAY_BYTES / 1e9:.2f} GB, + {HEADROOM - 1:.0%}")
     return agent + held * REPLAY_BYTES / 1e9, agent, held, how
 
 
 def seeds_per_job(args, engine: str, gpus: int, part: Partition | None, need: float):
-    """(seeds per job, why, jobs at a time the GPUs hold or None): --seeds-per-job; else 1 without
-    a GPU (one process per seed uses the cores as well); on SLURM SLURM_SEEDS_PER_JOB, or fewer
-    where a node's memory holds fewer; here as many as the GPU's and this machine's memory hold at
-    `need` GB a seed, at most MOST_SEEDS_PER_JOB, each packed job then on GPUs of its own."""
+    """(seeds per job, why, jobs at a time the GPUs hold or None), by the device and its memory."""
     if args.seeds_per_job:
         return args.seeds_per_job, f"--seeds-per-job {args.seeds_per_job}", None
     if not gpus:
-        return 1, ("no GPU: one process per seed uses the cores as well; --seeds-per-job packs "
-                   "them"), None
+        return 1, "no GPU: one process per seed uses the cores as well; --seeds-per-job packs them", None
     if engine != "local":
         fit = int(part.mem_mb / 1024 // need) if part and part.mem_mb else SLURM_SEEDS_PER_JOB
         k = max(1, min(SLURM_SEEDS_PER_JOB, fit))
-        held = f"; a node of {part.name} holds {k} at {need:.1f} GB a seed" \
-            if k < SLURM_SEEDS_PER_JOB else ""
-        return k, (f"the GPUs' memory is not visible at submission, so a conservative default"
-                   f"{held}; --seeds-per-job sets it"), None
+        held = f"; a node of {part.name} holds {k} at {need:.1f} GB a seed" if k < SLURM_SEEDS_PER_JOB else ""
+        return k, (f"the GPUs' memory is not visible at submission, so a conservative default{held}; "
+                   "--seeds-per-job sets it"), None
     import torch
-    gpu_gb = min(torch.cuda.get_device_properties(i).total_memory
-                 for i in range(len(local_gpus()))) / 2**30
+    gpu_gb = min(torch.cuda.get_device_properties(i).total_memory for i in range(len(local_gpus()))) / 2**30
     k = max(1, min(MOST_SEEDS_PER_JOB, int(min(gpu_gb, local_memory_gb()) // need)))
-    return k, (f"as many as a GPU's {gpu_gb:.0f} GB and this machine's {local_memory_gb():.0f} GB "
-               f"hold at {need:.1f} GB a seed, at most {MOST_SEEDS_PER_JOB}; --seeds-per-job sets "
-               "it"), (max(1, len(local_gpus()) // gpus) if k > 1 else None)
+    return k, (f"as many as a GPU's {gpu_gb:.0f} GB and this machine's {local_memory_gb():.0f} GB hold at "
+               f"{need:.1f} GB a seed, at most {MOST_SEEDS_PER_JOB}; --seeds-per-job sets it"), (
+        max(1, len(local_gpus()) // gpus) if k > 1 else None)
 
 
 def largest_node(engine: str, part: Partition | None) -> tuple[float | None, str]:
@@ -447,30 +411,23 @@ def largest_node(engine: str, part: Partition | None) -> tuple[float | None, str
         return local_memory_gb(), f"this machine has {local_memory_gb():.1f} GB"
     if part is None or not part.mem_mb:
         return None, ""
-    node = part.mem_mb / 1024
-    return node, f"a node of {part.name} has at most {node:.1f} GB (sinfo)"
+    return part.mem_mb / 1024, f"a node of {part.name} has at most {part.mem_mb / 1024:.1f} GB (sinfo)"
 
 
 def job_memory(args, node: float | None, have: str, peak: tuple, seeds: int) -> tuple[int, str]:
-    """(GB per job, the line that says it and why): --mem-gb, else the largest run's measured peak
-    (run_memory) plus headroom, times the seeds a job runs; one that no node holds fails here, in
-    one line, with a --seeds-per-job or --replay-size that fits where one does."""
+    """(GB per job, the line that says why): --mem-gb, else the measured peak; too big for a node fails."""
     need = max(1, math.ceil(peak[0] * HEADROOM * seeds))
-    how = peak[3]
-    how += f", x {seeds} seeds a job" if seeds > 1 else ""
+    how = peak[3] + (f", x {seeds} seeds a job" if seeds > 1 else "")
     if node is not None and (args.mem_gb or need) > node:
         if args.mem_gb:
             raise SweepError(f"--mem-gb {args.mem_gb}: {have}")
-        hint = memory_hint(node, peak, seeds)
-        raise SweepError(f"a job needs {need} GB ({how}), but {have}{hint}")
+        raise SweepError(f"a job needs {need} GB ({how}), but {have}{memory_hint(node, peak, seeds)}")
     why = f"--mem-gb; the estimate is {need} GB" if args.mem_gb else f"{how}; --mem-gb sets it"
-    return args.mem_gb or need, f"memory: {args.mem_gb or need} GB per job ({why})" + (
-        f"; {have}" if have else "")
+    return args.mem_gb or need, f"memory: {args.mem_gb or need} GB per job ({why})" + (f"; {have}" if have else "")
 
 
 def memory_hint(node: float, peak: tuple, seeds: int) -> str:
-    """Where a job needs more than a node has: the --seeds-per-job, else the --replay-size, that
-    fits, if one does."""
+    """The --seeds-per-job, else the --replay-size, that fits a node, if one does."""
     peak_gb, agent, held, _ = peak
     fits = int((math.floor(node) / HEADROOM / seeds - agent) * 1e9 / REPLAY_BYTES) // 1000 * 1000
     fewer = int(math.floor(node) // (peak_gb * HEADROOM))
@@ -481,8 +438,7 @@ def memory_hint(node: float, peak: tuple, seeds: int) -> str:
 
 def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[JobSpec],
               sweep_dir: str) -> tuple[list[Pack], str, int, int]:
-    """The jobs to run as packs, what the header says of them, the GB each gets and how many run
-    here at a time; prints the memory line."""
+    """(packs, seeds-per-job line, GB per job, jobs at a time here); prints the memory line."""
     distinct = {(s.env, s.variant, s.key): s for s in todo}.values()  # the seed changes nothing
     peak = max(run_memory(sear_config(list(s.args), s.name, quiet=True)) for s in distinct)
     if gpus and not args.seeds_per_job and len(distinct) == len(todo):
@@ -493,7 +449,7 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
     check_pack_size(units, engine)
     node, have = largest_node(engine, part)
     mem_gb, line = job_memory(args, node, have, peak, max(len(u.specs) for u in units))
-    parallel = args.jobs or min(max(1, cpu_count() // args.threads), slots or math.inf)
+    parallel = args.jobs or min(max(1, usable_cores() // args.threads), slots or math.inf)
     if engine == "local":
         parallel, line = local_parallel(args, parallel, mem_gb, node, line)
     print(line)
@@ -501,9 +457,8 @@ def resources(args, engine: str, part: Partition | None, gpus: int, todo: list[J
 
 
 def check_pack_size(units: list[Pack], engine: str) -> None:
-    """Here, a pack of more seeds than this machine holds (group.check_size: its cores and memory)
-    fails up front, in one line, rather than in each of its jobs."""
-    from harness import cli, group
+    """Here, a pack of more seeds than this machine holds (group.check_size) fails once, up front."""
+    from harness import group
     if engine != "local":
         return
     pack = max(units, key=lambda u: len(u.specs))
@@ -514,8 +469,7 @@ def check_pack_size(units: list[Pack], engine: str) -> None:
 
 
 def local_parallel(args, parallel: int, mem_gb: int, node: float, line: str) -> tuple[int, str]:
-    """Jobs at a time on this machine, fewer where its memory holds fewer (an explicit --jobs is
-    kept, with a note), and the memory line that says so."""
+    """Jobs at a time here, fewer where memory holds fewer (a --jobs is kept, with a note)."""
     if parallel * mem_gb <= node:
         return parallel, line
     if args.jobs:
@@ -525,9 +479,9 @@ def local_parallel(args, parallel: int, mem_gb: int, node: float, line: str) -> 
 
 
 # ------------------------------------------------------------------------ 4. job folders
-# A job's folder: job.json (its JobSpec), run/ (sear.py's --run-root), stdout.log and stderr.log,
-# status.json, lock, DONE; a seed run in a pack also holds pack.json, {"pack": the pack's folder,
-# "seeds", "seed"}: its run is its member of the group folder in the pack's run/.
+# A job's folder: job.json (its JobSpec), run/ (sear.py's --run-root), stdout.log and stderr.log, status.json,
+# lock, DONE; a seed run in a pack also holds pack.json, {"pack": the pack's folder, "seeds", "seed"}: its run
+# is its member of the group folder in the pack's run/.
 PACK_FILE = "pack.json"
 GROUP_FILE = "group.json"  # group.GROUP_FILE, read here without group.py's torch
 
@@ -548,8 +502,7 @@ def write_json(path: str, data: dict) -> None:
 
 
 def proc_start(pid: int) -> int | None:
-    """A live process's start in clock ticks since boot (it tells a reused pid apart); -1 for a
-    zombie (killed, not yet reaped); None where /proc cannot tell."""
+    """A process's start in clock ticks (tells a reused pid apart); -1 a zombie; None: unknown."""
     try:
         with open(f"/proc/{pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()
@@ -560,8 +513,7 @@ def proc_start(pid: int) -> int | None:
 
 def whoami() -> dict:
     """This process as a lock holder: pid and host, plus the submitit job id inside a job."""
-    me = {"pid": os.getpid(), "host": socket.gethostname(), "start": proc_start(os.getpid()),
-          "time": time.time()}
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "start": proc_start(os.getpid()), "time": time.time()}
     with contextlib.suppress(RuntimeError):  # not inside a submitit job (the sweep driver itself)
         env = submitit.JobEnvironment()
         me.update(job=env.job_id, cluster=env.cluster)
@@ -576,14 +528,12 @@ def alive(owner: dict | None) -> bool | None:
         return pid_alive(owner["pid"], owner.get("start"))
     if owner.get("cluster") != "slurm" or not owner.get("job") or not shutil.which("squeue"):
         return None
-    r = subprocess.run(["squeue", "-h", "-j", owner["job"], "-o", "%T"], capture_output=True,
-                       text=True)
+    r = subprocess.run(["squeue", "-h", "-j", owner["job"], "-o", "%T"], capture_output=True, text=True)
     return bool(r.stdout.strip()) if r.returncode == 0 or "Invalid job id" in r.stderr else None
 
 
 def pid_alive(pid: int, start: int | None) -> bool:
-    """Whether process `pid` of this host lives, and is the one that started at `start` (not a
-    later process given the same pid, nor a zombie)."""
+    """Whether `pid` of this host lives and is the process that started at `start`, not a zombie."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -601,19 +551,15 @@ def describe(owner: dict) -> str:
 
 
 @contextlib.contextmanager
-def guard(job_dir: str):
+def guard(folder: str):
     """Serialises lock take-overs: two processes that both see a stale lock cannot both win."""
-    with open(os.path.join(job_dir, ".guard"), "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+    with open(os.path.join(folder, ".guard"), "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)  # closing the file lets go
+        yield
 
 
 def take_lock(job_dir: str, me: dict) -> dict | None:
-    """None if `me` now holds the job's lock, else the live holder. A dead holder, or this very
-    SLURM job before a requeue, is taken over."""
+    """None if `me` now holds the lock, else the live holder; a dead holder or this requeued job is taken over."""
     with guard(job_dir):
         holder = read_json(os.path.join(job_dir, "lock"))
         requeued = holder and me.get("job") and holder.get("job") == me["job"]
@@ -631,17 +577,13 @@ def drop_lock(job_dir: str, me: dict) -> None:
 
 
 def run_dirs(job_dir: str) -> list[str]:
-    """The job's run directories: those in its run/, or, for a seed run by a pack, the seed's run
-    in the group folders of the pack's run/ (their group.json)."""
+    """The job's run directories: its run/'s, or for a packed seed its member of the pack's group folders."""
     pack = read_json(os.path.join(job_dir, PACK_FILE))
     if pack:
-        seed, runs = str(pack["seed"]), []
         pack_dir = os.path.join(os.path.dirname(os.path.normpath(job_dir)), pack["pack"])
-        for folder in run_dirs(pack_dir):
-            member = (read_json(os.path.join(folder, GROUP_FILE)) or {}).get("runs", {}).get(seed)
-            if member and os.path.isdir(os.path.join(folder, member)):
-                runs.append(os.path.join(folder, member))
-        return runs
+        groups = [(f, (read_json(os.path.join(f, GROUP_FILE)) or {}).get("runs", {}).get(str(pack["seed"])))
+                  for f in run_dirs(pack_dir)]
+        return [os.path.join(f, m) for f, m in groups if m and os.path.isdir(os.path.join(f, m))]
     root = os.path.join(job_dir, "run")
     return sorted(os.path.join(root, d) for d in os.listdir(root)
                   if os.path.isdir(os.path.join(root, d))) if os.path.isdir(root) else []
@@ -650,13 +592,11 @@ def run_dirs(job_dir: str) -> list[str]:
 def set_status(job_dir: str, state: str, **info) -> None:
     old = read_json(os.path.join(job_dir, "status.json")) or {}
     write_json(os.path.join(job_dir, "status.json"), {
-        "state": state, "time": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "attempts": old.get("attempts", 0), **info})
+        "state": state, "time": time.strftime("%Y-%m-%d %H:%M:%S"), "attempts": old.get("attempts", 0), **info})
 
 
 def mark_queued(job_dir: str, by: dict) -> None:
-    """Under the guard, and only while no live process holds the job: a job that has already
-    started (its lock is taken under the same guard) keeps its own status."""
+    """Only while no live process holds the job: one that has started (under the same guard) keeps its status."""
     with guard(job_dir):
         if alive(read_json(os.path.join(job_dir, "lock"))) is False:
             set_status(job_dir, "queued", by=by)
@@ -680,44 +620,33 @@ def job_state(job_dir: str) -> tuple[str, str]:
             else ("queued", describe(by))
     if state == "running":  # status says running, but the lock holder is gone
         return "interrupted", "its process is gone; re-run the sweep to resume"
-    return (state, status.get("error", "")) if state in ("failed", "interrupted") else \
-        ("not started", "")
-
-
-def last_frame(job_dir: str) -> str:
-    """The last frame the job's run logged; '-' before it has a run."""
-    runs = run_dirs(job_dir)
-    try:
-        with open(os.path.join(runs[-1], "train.csv"), newline="") as f:
-            return list(csv.DictReader(f))[-1]["frame"]
-    except (OSError, KeyError, IndexError):
-        return "0" if runs else "-"
+    return (state, status.get("error", "")) if state in ("failed", "interrupted") else ("not started", "")
 
 
 def status_table(out: str, specs: list[JobSpec]) -> str:
-    """A row per job: its state, frames trained of its budget and a note; then the counts."""
+    """A row per job: its state, the last frame its run logged of its budget and a note; then the counts."""
     rows, counts = [("job", "state", "frames", "note")], collections.Counter()
     for spec in specs:
         d = os.path.join(out, spec.sweep, spec.name)
-        state, note = job_state(d)
+        (state, note), runs = job_state(d), run_dirs(d)
+        frame = "0" if runs else "-"
+        with contextlib.suppress(OSError, KeyError, IndexError):
+            with open(os.path.join(runs[-1], "train.csv"), newline="") as f:
+                frame = list(csv.DictReader(f))[-1]["frame"]
         counts[state] += 1
-        rows.append((spec.name, state, f"{last_frame(d)}/{spec.frames}", note))
+        rows.append((spec.name, state, f"{frame}/{spec.frames}", note))
     widths = [max(len(r[i]) for r in rows) for i in range(3)]
-    lines = ["  ".join(r[i].ljust(widths[i]) for i in range(3)) + "  " + r[3] for r in rows]
-    summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-    return "\n".join([*(ln.rstrip() for ln in lines), f"{len(specs)} jobs: {summary}"])
+    lines = [("  ".join(r[i].ljust(widths[i]) for i in range(3)) + "  " + r[3]).rstrip() for r in rows]
+    return "\n".join([*lines, f"{len(specs)} jobs: {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))}"])
 
 
 # ------------------------------------------------------------------------ 5. the job
 class SearJob(submitit.helpers.Checkpointable):
-    """One sear.py process, started fresh (sear.py renders with EGL, and a process that rendered
-    must not fork a renderer child), for a job or, given seed_dirs, a pack of seeds run from the
-    pack's folder: it takes every seed's lock (one held by a live process: it skips) and writes
-    every seed's status.json and DONE. Checkpointable: a SLURM job that reaches its time limit is
-    requeued, and this same call then resumes the run (the group folder) from its snapshots."""
+    """A job, or given seed_dirs a pack, as a fresh sear.py process (one that rendered with EGL must not fork a
+    renderer) holding every seed's lock. Checkpointable: requeued at the time limit, the same call resumes."""
 
-    def __init__(self, job_dir: str, args: list[str], resume_args: list[str], threads: int,
-                 script: str, seed_dirs: list[str] | None = None, devices: str | None = None):
+    def __init__(self, job_dir: str, args: list[str], resume_args: list[str], threads: int, script: str,
+                 seed_dirs: list[str] | None = None, devices: str | None = None):
         self.job_dir, self.args, self.resume_args = job_dir, list(args), list(resume_args)
         self.threads, self.script, self.python = threads, script, sys.executable
         self.seed_dirs = list(seed_dirs or [job_dir])  # whose locks and DONE the job takes
@@ -729,14 +658,12 @@ class SearJob(submitit.helpers.Checkpointable):
 
     def __call__(self) -> str:
         me, taken = whoami(), []
-        for job_dir in self.seed_dirs:
-            holder = take_lock(job_dir, me)
-            if holder is not None:
-                for held in taken:
-                    drop_lock(held, me)
-                return f"skipped: already running ({describe(holder)})"
-            taken.append(job_dir)
         try:
+            for job_dir in self.seed_dirs:
+                holder = take_lock(job_dir, me)
+                if holder is not None:
+                    return f"skipped: already running ({describe(holder)})"
+                taken.append(job_dir)
             return "done" if all(map(is_done, self.seed_dirs)) else self.run(me)
         except KeyboardInterrupt:
             self.set_status("interrupted", error="interrupted; re-run the sweep to resume")
@@ -757,18 +684,15 @@ class SearJob(submitit.helpers.Checkpointable):
             self.set_status("failed", error=error)
             return f"failed: {error}"
         cmd, moved = self.command(runs[0] if runs else None)
-        status = read_json(os.path.join(self.job_dir, "status.json")) or {}
-        attempt = status.get("attempts", 0) + 1
+        attempt = (read_json(os.path.join(self.job_dir, "status.json")) or {}).get("attempts", 0) + 1
         self.set_status("running", attempts=attempt, owner=me)
-        env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "PYTHONUNBUFFERED": "1",
-               "MKL_NUM_THREADS": str(self.threads)}
-        if self.devices is not None:
-            env["CUDA_VISIBLE_DEVICES"] = self.devices
+        env = {**os.environ, "OMP_NUM_THREADS": str(self.threads), "MKL_NUM_THREADS": str(self.threads),
+               "PYTHONUNBUFFERED": "1", **({} if self.devices is None else {"CUDA_VISIBLE_DEVICES": self.devices})}
         with open(os.path.join(self.job_dir, "stdout.log"), "a") as out, \
                 open(os.path.join(self.job_dir, "stderr.log"), "a") as err:
             for f in (out, err):
-                f.write(f"=== attempt {attempt} at {time.strftime('%Y-%m-%d %H:%M:%S')}, "
-                        f"{describe(me)}: {shlex.join(cmd)}\n")
+                f.write(f"=== attempt {attempt} at {time.strftime('%Y-%m-%d %H:%M:%S')}, {describe(me)}: "
+                        f"{shlex.join(cmd)}\n")
             out.write(moved)
             out.flush(), err.flush()
             offset = err.tell()
@@ -776,21 +700,15 @@ class SearJob(submitit.helpers.Checkpointable):
         return self.settle(code, attempt, offset)
 
     def command(self, run: str | None) -> tuple[list[str], str]:
-        """(sear.py's command, the line that says a run was moved aside, or ''): the run resumed
-        from its snapshot (a group folder: every member's), else a fresh one, a run that died
-        before its snapshot moved aside first."""
-        members = (read_json(os.path.join(run, GROUP_FILE)) or {}).get("runs", {"": ""}) if run \
-            else {}
-        if run and all(os.path.exists(os.path.join(run, m, "snapshot.pt"))
-                       for m in members.values()):
+        """(sear.py's command, a note or ''): resume from the snapshot(s), else start fresh, the run moved aside."""
+        members = (read_json(os.path.join(run, GROUP_FILE)) or {}).get("runs", {"": ""}) if run else {}
+        if run and all(os.path.exists(os.path.join(run, m, "snapshot.pt")) for m in members.values()):
             return [self.python, self.script, "--resume", run, *self.resume_args], ""
         moved = f"moved the snapshot-less run {run} to {self.move_aside(run)}\n" if run else ""
-        return [self.python, self.script, *self.args, "--run-root",
-                os.path.join(self.job_dir, "run")], moved
+        return [self.python, self.script, *self.args, "--run-root", os.path.join(self.job_dir, "run")], moved
 
     def settle(self, code: int, attempt: int, offset: int) -> str:
-        """DONE and status done after exit 0; interrupted after SIGTERM; else failed with the last
-        stderr line."""
+        """DONE and status done after exit 0; interrupted after SIGTERM; else failed with the last stderr line."""
         if code == 0:
             for job_dir in self.seed_dirs:
                 with open(os.path.join(job_dir, "DONE"), "w") as f:
@@ -799,19 +717,17 @@ class SearJob(submitit.helpers.Checkpointable):
             return "done"
         how = f"exit code {code}" if code > 0 else f"killed by signal {-code}"
         if code in (-signal.SIGTERM, 128 + signal.SIGTERM):  # scancel, a time limit, a shutdown
-            error = f"stopped by SIGTERM ({how}); re-run the sweep to resume"
-            self.set_status("interrupted", attempts=attempt, exit_code=code, error=error)
-            return f"interrupted: {error}"
-        with open(os.path.join(self.job_dir, "stderr.log"), errors="replace") as f:
-            f.seek(offset)  # its last line is the error's message
-            lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if ln.strip()]
-        error = f"{how}: {lines[-1][:300] if lines else how}"
-        self.set_status("failed", attempts=attempt, exit_code=code, error=error)
-        return f"failed: {error}"
+            state, error = "interrupted", f"stopped by SIGTERM ({how}); re-run the sweep to resume"
+        else:
+            with open(os.path.join(self.job_dir, "stderr.log"), errors="replace") as f:
+                f.seek(offset)  # its last line is the error's message
+                lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if ln.strip()]
+            state, error = "failed", f"{how}: {lines[-1][:300] if lines else how}"
+        self.set_status(state, attempts=attempt, exit_code=code, error=error)
+        return f"{state}: {error}"
 
     def move_aside(self, run: str) -> str:
-        """<out>/<sweep>/<job>/run/<run> -> <out>/<sweep>.aside/<job>/<run>: out of the sweep's
-        folder, so that plot.py on it does not pick the run up; never over an earlier one."""
+        """<out>/<sweep>/<job>/run/<run> -> <out>/<sweep>.aside/<job>/<run>, never over an earlier one."""
         sweep_dir, job = os.path.split(os.path.normpath(self.job_dir))
         base = os.path.join(f"{sweep_dir}.aside", job, os.path.basename(run))
         dest = next(d for d in itertools.chain([base], (f"{base}~{k}" for k in itertools.count(1)))
@@ -822,26 +738,19 @@ class SearJob(submitit.helpers.Checkpointable):
 
 
 def new_job(sweep_dir: str, unit: Pack, threads: int) -> SearJob:
-    """The job of a unit and its folders: each seed's with its job.json (and pack.json), and the
-    pack's."""
+    """The job of a unit and its folders: each seed's with its job.json (and pack.json), and the pack's."""
     seed_dirs = [os.path.abspath(os.path.join(sweep_dir, spec.name)) for spec in unit.specs]
     for spec, job_dir in zip(unit.specs, seed_dirs):
         os.makedirs(job_dir, exist_ok=True)
         write_json(os.path.join(job_dir, "job.json"), dataclasses.asdict(spec))
         if len(unit.specs) > 1:
-            write_json(os.path.join(job_dir, PACK_FILE),
-                       {"pack": unit.name, "seeds": unit.seeds, "seed": spec.seed})
+            write_json(os.path.join(job_dir, PACK_FILE), {"pack": unit.name, "seeds": unit.seeds, "seed": spec.seed})
     job_dir = os.path.abspath(os.path.join(sweep_dir, unit.name))
     os.makedirs(job_dir, exist_ok=True)
-    return SearJob(job_dir, unit.args, unit.specs[0].resume_args, threads, script=SEAR_PY,
-                   seed_dirs=seed_dirs)
+    return SearJob(job_dir, unit.args, unit.specs[0].resume_args, threads, script=SEAR_PY, seed_dirs=seed_dirs)
 
 
 # ------------------------------------------------------------------------ 6. where the jobs run
-def cpu_count() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def local_memory_gb() -> float:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
 
@@ -850,9 +759,25 @@ def local_gpus() -> list[str]:
     """The GPUs this machine lets us use, as CUDA_VISIBLE_DEVICES names them."""
     import torch
     n, visible = torch.cuda.device_count(), os.environ.get("CUDA_VISIBLE_DEVICES")
-    if visible is None:
-        return [str(i) for i in range(n)]
-    return [d.strip() for d in visible.split(",") if d.strip()][:n]
+    return [str(i) for i in range(n)] if visible is None else [d.strip() for d in visible.split(",") if d.strip()][:n]
+
+
+def pick_engine(args) -> tuple[str, str]:
+    """(engine, why): --engine, else the folder's record, else local; never SLURM for srun on the PATH."""
+    srun = shutil.which("srun") is not None
+    recorded, where = recorded_engine(os.path.join(args.out, args.sweep))
+    if args.engine:
+        engine, why = args.engine, f"--engine {args.engine}"
+    elif recorded:
+        engine = recorded
+        why = f"{where}; --engine {'local runs it here' if recorded == 'slurm' else 'slurm submits it to SLURM'}"
+    else:
+        engine, why = "local", "default; --engine slurm to submit to SLURM, whose srun is on the PATH" if srun \
+            else "default"
+    if engine == "slurm" and not srun:
+        raise SweepError(f"engine slurm ({why}), but srun is not on this machine's PATH")
+    check_flags(args, engine, why)
+    return engine, why
 
 
 def check_flags(args, engine: str, why: str) -> None:
@@ -862,53 +787,23 @@ def check_flags(args, engine: str, why: str) -> None:
         value, least = getattr(args, name), 0 if name == "gpus_per_job" else 1
         if value is not None and value < least:
             raise SweepError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
-    slurm_only = [f for f in ("partition", "account", "slurm_array_parallelism")
-                  if getattr(args, f) is not None]
+    slurm_only = [f for f in ("partition", "account", "slurm_array_parallelism") if getattr(args, f) is not None]
     if engine != "slurm" and slurm_only:
-        raise SweepError(f"--{slurm_only[0].replace('_', '-')} needs SLURM, but the engine is "
-                         f"{engine} ({why})")
+        raise SweepError(f"--{slurm_only[0].replace('_', '-')} needs SLURM, but the engine is {engine} ({why})")
 
 
-def pick_engine(args) -> tuple[str, str]:
-    """(engine, why): --engine, else the one the sweep's folder records, else this machine. Never
-    SLURM because srun happens to be on the PATH: that sent a login node's test sweep to a queue
-    unasked."""
-    srun = shutil.which("srun") is not None
-    recorded, where = recorded_engine(os.path.join(args.out, args.sweep))
-    if args.engine:
-        engine, why = args.engine, f"--engine {args.engine}"
-    elif recorded:
-        other = "local runs it here" if recorded == "slurm" else "slurm submits it to SLURM"
-        engine, why = recorded, f"{where}; --engine {other}"
-    else:
-        engine = "local"
-        why = "default; --engine slurm to submit to SLURM, whose srun is on the PATH" if srun \
-            else "default"
-    if engine == "slurm" and not srun:
-        raise SweepError(f"engine slurm ({why}), but srun is not on this machine's PATH")
-    check_flags(args, engine, why)
-    return engine, why
-
-
-@dataclass(frozen=True)
-class Partition:
-    """What a node of a SLURM partition can give, as sinfo reports it."""
-    name: str    # for messages: "partition gpu" or "the default partition"
-    gpus: int    # the most GPUs one node has
-    cpus: int    # the most CPUs one node has
-    mem_mb: int  # the most memory one node has (RealMemory, MB as SLURM counts them: 1024 a GB)
+# What a node of a SLURM partition can give, as sinfo reports it: name for messages ("partition gpu" or "the
+# default partition"), the most GPUs, CPUs and memory (MB as SLURM counts them: 1024 a GB) of one node.
+Partition = collections.namedtuple("Partition", "name gpus cpus mem_mb")
 
 
 def sinfo_rows() -> list[list[str]]:
-    """sinfo's rows, [partition (the default one ends in *), GPUs, CPUs, memory MB]; none without
-    sinfo."""
+    """sinfo's rows, [partition (the default one ends in *), GPUs, CPUs, memory MB]; none without sinfo."""
     try:
-        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c|%m"], capture_output=True,
-                           text=True, timeout=60)
+        r = subprocess.run(["sinfo", "-h", "--all", "-o", "%P|%G|%c|%m"], capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired):
         return []
-    return [ln.split("|") for ln in r.stdout.splitlines() if ln.count("|") == 3] \
-        if r.returncode == 0 else []
+    return [ln.split("|") for ln in r.stdout.splitlines() if ln.count("|") == 3] if r.returncode == 0 else []
 
 
 def slurm_partition(partition: str | None) -> Partition | None:
@@ -917,23 +812,20 @@ def slurm_partition(partition: str | None) -> Partition | None:
     names = list(dict.fromkeys(row[0].rstrip("*") for row in rows))
     if rows and partition is not None and partition not in names:
         raise SweepError(f"SLURM has no partition '{partition}' (sinfo lists {', '.join(names)})")
-    mine = [row[1:] for row in rows
-            if (row[0].rstrip("*") == partition if partition else row[0].endswith("*"))]
+    mine = [row[1:] for row in rows if (row[0].rstrip("*") == partition if partition else row[0].endswith("*"))]
     return Partition(f"partition {partition}" if partition else "the default partition",
                      *most_of_a_node(mine)) if mine else None
 
 
 def most_of_a_node(rows: list[list[str]]) -> tuple[int, int, int]:
-    """(GPUs, CPUs, memory MB) of the largest node in sinfo's rows: %G 'gpu:4', 'gpu:a100:8(S:0-1)',
-    'gpu:a:2,gpu:b:2,mps:100', '(null)'; %c and %m '64', '64+' (nodes that differ), 'n/a'."""
+    """(GPUs, CPUs, MB) of the largest node in sinfo's rows (%G 'gpu:a100:8(S:0-1)', %c '64+', 'n/a')."""
     gpus = [sum(map(int, re.findall(r"(?:^|,)gpu(?::[^:,(]+)?:(\d+)", row[0]))) for row in rows]
     cpus, mem = ([int(re.match(r"\d*", row[i])[0] or 0) for row in rows] for i in (1, 2))
     return max(gpus), max(cpus), max(mem)
 
 
 def job_gpus(args, engine: str, part: Partition | None) -> tuple[int, str]:
-    """(GPUs per job, what the header says of them): by default 1 where this machine or the
-    partition has GPUs, else none; GPUs or CPUs no node has fail here."""
+    """(GPUs per job, what the header says): default 1 where there are GPUs; more than a node has fails."""
     asked = args.gpus_per_job
     if engine == "local":
         have = len(local_gpus())
@@ -952,31 +844,16 @@ def partition_gpus(args, part: Partition) -> tuple[int, str]:
     """job_gpus on SLURM where sinfo describes the partition's nodes."""
     asked = args.gpus_per_job
     if part.cpus and args.threads > part.cpus:  # pending for ever
-        raise SweepError(f"--threads {args.threads}: the nodes of {part.name} have at most "
-                         f"{part.cpus} CPUs (sinfo), so the jobs would never start")
+        raise SweepError(f"--threads {args.threads}: the nodes of {part.name} have at most {part.cpus} CPUs "
+                         "(sinfo), so the jobs would never start")
     if asked is not None and asked > part.gpus:
-        have = f"at most {part.gpus} GPU(s)" if part.gpus else \
-            "no GPUs; --gpus-per-job 0 runs on their CPUs"
+        have = f"at most {part.gpus} GPU(s)" if part.gpus else "no GPUs; --gpus-per-job 0 runs on their CPUs"
         raise SweepError(f"--gpus-per-job {asked}: the nodes of {part.name} have {have} (sinfo)")
     gpus = min(1, part.gpus) if asked is None else asked
     return gpus, f"{gpus} GPU(s) per job" if part.gpus else f"no GPU, as {part.name} has none"
 
 
 # ------------------------------------------------------------------------ 7. submitit
-def make_executor(args, engine: str, folder: str, gpus: int, mem_gb: int | None):
-    """submitit's executor. Locally each job gets its GPUs through CUDA_VISIBLE_DEVICES
-    (SearJob.devices), not submitit's, which gives every job the same first ones; on SLURM, no GPU
-    request unless there are GPUs."""
-    executor = submitit.AutoExecutor(folder=folder, cluster=engine)
-    params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", mem_gb=mem_gb,
-                  cpus_per_task=args.threads,
-                  gpus_per_node=0 if engine == "local" else gpus or None,
-                  slurm_partition=args.partition, slurm_account=args.account,
-                  slurm_array_parallelism=args.slurm_array_parallelism)
-    executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
-    return executor
-
-
 def refusal(error: Exception, stderr: str, jobs: int, mem_gb: int) -> SweepError:
     """sbatch's reason for refusing the array, in one line, with a hint where one helps."""
     lines = [ln.strip() for ln in (str(error) or stderr).splitlines() if ln.strip()]
@@ -995,20 +872,18 @@ def submit(executor, jobs: list[SearJob], mem_gb: int, engine: str, sweep_dir: s
     try:
         with contextlib.redirect_stderr(err), executor.batch():  # submitit prints sbatch's stderr
             submitted = [executor.submit(job) for job in jobs]
-    except (submitit.core.utils.FailedJobError, submitit.core.utils.FailedSubmissionError,
-            OSError) as e:
+    except (submitit.core.utils.FailedJobError, submitit.core.utils.FailedSubmissionError, OSError) as e:
         raise refusal(e, err.getvalue(), len(jobs), mem_gb) from None
     for job, task in zip(jobs, submitted):
         for job_dir in job.state_dirs():
             mark_queued(job_dir, {"cluster": engine, "job": task.job_id})
-    print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them "
-          f"with --status, draw the curves with --report; logs in {sweep_dir}/<job>/")
+    print(f"submitted {len(submitted)} jobs ({submitted[0].job_id.split('_')[0]}); follow them with --status, "
+          f"draw the curves with --report; logs in {sweep_dir}/<job>/")
     return 0
 
 
 def job_devices(gpus: int, have: list[str], slots: int) -> list[str]:
-    """CUDA_VISIBLE_DEVICES of each local job slot: `gpus` per job, round robin over `have`; no
-    GPU (--gpus-per-job 0, or none here): on the CPU."""
+    """CUDA_VISIBLE_DEVICES of each local job slot: `gpus` per job, round robin over `have`."""
     return [",".join(have[(s * gpus + i) % len(have)] for i in range(gpus)) for s in range(slots)]
 
 
@@ -1033,8 +908,8 @@ def run_local(executor, jobs: dict, devices: list[str]) -> dict:
                 del running[unit]
                 free = sorted([*free, slot])
                 results[unit] = outcome(job)
-                print(f"[{len(results)}/{len(jobs)}] {unit.name}: {results[unit]} "
-                      f"({time.time() - started:.0f} s)", flush=True)
+                print(f"[{len(results)}/{len(jobs)}] {unit.name}: {results[unit]} ({time.time() - started:.0f} s)",
+                      flush=True)
     except KeyboardInterrupt:
         for job, _, _ in running.values():
             job.cancel(check=False)
@@ -1043,9 +918,9 @@ def run_local(executor, jobs: dict, devices: list[str]) -> dict:
 
 
 # ------------------------------------------------------------------------ 8. a sweep's record
-# <out>/<sweep>/sweep.json: {"engine", "sweeps": [{"grid", "flags", "command", "jobs"}]}, an entry
-# per grid and sear.py flags submitted to the folder, its jobs those of every submission with them;
-# "engine" the one the folder's sweeps last ran on, and run on again unless --engine.
+# <out>/<sweep>/sweep.json: {"engine", "sweeps": [{"grid", "flags", "command", "jobs"}]}, an entry per grid and
+# sear.py flags submitted to the folder, its jobs those of every submission with them; "engine" the one the
+# folder's sweeps last ran on, and run on again unless --engine.
 RECORD = "sweep.json"
 
 
@@ -1054,8 +929,7 @@ def read_record(sweep_dir: str) -> list[dict]:
 
 
 def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
-    """(engine, where it is written) of a sweep folder: its record, else (folders from before the
-    record named it) a job queued or run on SLURM; (None, "") for a new folder."""
+    """(engine, where it is written) of a sweep folder: its record, else jobs that went to SLURM."""
     engine = (read_json(os.path.join(sweep_dir, RECORD)) or {}).get("engine")
     if engine in ("local", "slurm"):
         return engine, f"{os.path.join(sweep_dir, RECORD)} records it"
@@ -1067,13 +941,12 @@ def recorded_engine(sweep_dir: str) -> tuple[str | None, str]:
 
 
 def record_sweep(sweep_dir: str, args, specs: list[JobSpec], engine: str) -> None:
-    """Add `specs` to the folder's record under their grid and sear.py flags: the same sweep run
-    again (say for more seeds) adds to its entry, other flags make another, and a note says so."""
+    """Add `specs` to the folder's record, in the entry of their grid and sear.py flags."""
     os.makedirs(sweep_dir, exist_ok=True)
     with guard(sweep_dir):  # two drivers submitting to one folder at once both end up in the record
         sweeps = read_record(sweep_dir)
-        entry = next((e for e in sweeps if (e["grid"], e["flags"]) == (args.grid, args.flags)),
-                     None) or {"grid": args.grid, "flags": list(args.flags), "jobs": []}
+        entry = next((e for e in sweeps if (e["grid"], e["flags"]) == (args.grid, args.flags)), None) or {
+            "grid": args.grid, "flags": list(args.flags), "jobs": []}
         sweeps += [] if entry in sweeps else [entry]
         entry["command"] = list(args.argv)
         jobs = {j["name"]: j for j in entry["jobs"]}
@@ -1081,47 +954,42 @@ def record_sweep(sweep_dir: str, args, specs: list[JobSpec], engine: str) -> Non
         entry["jobs"] = list(jobs.values())
         write_json(os.path.join(sweep_dir, RECORD), {"engine": engine, "sweeps": sweeps})
     if len(sweeps) > 1:
-        print(f"note: {sweep_dir} now holds {len(sweeps)} sweeps (other grids or sear.py flags); "
-              "--status and --report then need the sweep's flags after -- to pick one")
+        print(f"note: {sweep_dir} now holds {len(sweeps)} sweeps (other grids or sear.py flags); --status and "
+              "--report then need the sweep's flags after -- to pick one")
 
 
 def as_specs(jobs: list[dict]) -> list[JobSpec]:
     fields = [f.name for f in dataclasses.fields(JobSpec)]
-    return [JobSpec(**{k: tuple(j[k]) if isinstance(j[k], list) else j[k] for k in fields})
-            for j in jobs]
+    return [JobSpec(**{k: tuple(j[k]) if isinstance(j[k], list) else j[k] for k in fields}) for j in jobs]
 
 
 def folder_specs(sweep_dir: str) -> list[JobSpec]:
     """The jobs a sweep folder holds, from their job.json (folders from before sweep.json)."""
     names = sorted(os.listdir(sweep_dir)) if os.path.isdir(sweep_dir) else []
-    return as_specs([j for j in (read_json(os.path.join(sweep_dir, n, "job.json")) for n in names)
-                     if j])
+    return as_specs([j for j in (read_json(os.path.join(sweep_dir, n, "job.json")) for n in names) if j])
 
 
-def show_command(args, verb: str, sweep: str, entry: dict) -> str:
-    """The sweep.py line that shows one sweep of a folder, --status or --report with its flags,
-    and how many jobs it has."""
-    grid, flags = entry.get("grid"), entry.get("flags")
-    line = ["python", "sweep.py", *(["--out", args.out] if args.out != "sweeps" else []),
-            *(["--grid", grid] if grid else []),
-            *(["--name", sweep] if sweep != (grid or "custom") else []), f"--{verb}"]
-    jobs = f" ({plural(len(entry['jobs']), 'job')})" if "jobs" in entry else ""
-    return shlex.join([*line, *(["--", *flags] if flags else [])]) + jobs
+def listed(args, verb: str, sweep: str, entries: list[dict]) -> str:
+    """The sweep.py commands that show each sweep of a folder, with how many jobs each has."""
+    def command(entry):
+        grid, flags = entry.get("grid"), entry.get("flags")
+        line = ["python", "sweep.py", *(["--out", args.out] if args.out != "sweeps" else []),
+                *(["--grid", grid] if grid else []), *(["--name", sweep] if sweep != (grid or "custom") else []),
+                f"--{verb}", *(["--", *flags] if flags else [])]
+        return shlex.join(line) + (f" ({plural(len(entry['jobs']), 'job')})" if "jobs" in entry else "")
+    return "; ".join(map(command, entries))
 
 
 def flag_set(flags: list[str]) -> list[tuple[str, ...]]:
     """Flags as a sorted list of (--name, values...): --frames=40 is --frames 40, in any order."""
     pairs = []
-    for tok in (p for flag in flags for p in (flag.split("=", 1) if flag.startswith("--") else
-                                              [flag])):
+    for tok in (p for flag in flags for p in (flag.split("=", 1) if flag.startswith("--") else [flag])):
         pairs += [(tok,)] if tok.startswith("--") or not pairs else [(*pairs.pop(), tok)]
     return sorted(pairs)
 
 
 def find_sweep(args, verb: str) -> tuple[list[JobSpec], Grid | None]:
-    """--status / --report: the jobs of the sweep in --out/--name (or --grid) from the folder's
-    record, its flags not given again; --envs, --methods and --seeds pick a subset. A folder
-    without the record (from before it was kept): the jobs its job.json files name."""
+    """--status / --report: the recorded jobs of the sweep in --out/--name (or --grid), or its job.json's."""
     sweep = sweep_name(args)
     folder = os.path.join(args.out, sweep)
     entries = read_record(folder)
@@ -1132,53 +1000,41 @@ def find_sweep(args, verb: str) -> tuple[list[JobSpec], Grid | None]:
         return select(args, folder_specs(folder), folder), None
     names = [n for n in sorted(os.listdir(args.out)) if read_record(os.path.join(args.out, n))
              or folder_specs(os.path.join(args.out, n))] if os.path.isdir(args.out) else []
-    holds = "; ".join(show_command(args, verb, n, {}) for n in names)
+    holds = "; ".join(listed(args, verb, n, [{}]) for n in names)
     raise SweepError(f"no sweep in {folder}; {args.out} holds " + (
         f"{', '.join(names)}: {holds}" if names else "no sweep yet"))
 
 
 def pick_entry(args, verb: str, sweep: str, folder: str, entries: list[dict]) -> dict:
-    """The sweep of a folder's record that --grid and the flags after -- name (none: the one run
-    without any, or the only one; a note names the others); SweepError naming the folder's sweeps
-    and the command that shows each when they name none, or several."""
+    """The recorded sweep --grid and the flags after -- name (none: the one without flags, or the only one)."""
     chosen, same = matching(args, entries)
     if not chosen:
         raise SweepError(f"{folder} holds no sweep of grid {args.grid}; it holds: "
                          f"{listed(args, verb, sweep, entries)}")
     if args.flags and not same:
-        raise SweepError(f"{folder} holds no sweep run with `-- {shlex.join(args.flags)}`; it "
-                         f"holds: {listed(args, verb, sweep, chosen)}")
-    if len(chosen) > 1 and len(same) != 1:
-        raise SweepError(f"{folder} holds {len(chosen)} sweeps, show one: "
+        raise SweepError(f"{folder} holds no sweep run with `-- {shlex.join(args.flags)}`; it holds: "
                          f"{listed(args, verb, sweep, chosen)}")
+    if len(chosen) > 1 and len(same) != 1:
+        raise SweepError(f"{folder} holds {len(chosen)} sweeps, show one: {listed(args, verb, sweep, chosen)}")
     if len(chosen) > 1:
-        others = [e for e in chosen if e is not same[0]]
-        print(f"note: {folder} also holds: {listed(args, verb, sweep, others)}")
+        print(f"note: {folder} also holds: {listed(args, verb, sweep, [e for e in chosen if e is not same[0]])}")
     return (same or chosen)[0]
 
 
 def matching(args, entries: list[dict]) -> tuple[list[dict], list[dict]]:
-    """The recorded sweeps of --grid (all without it), and of those the ones run with the flags
-    after -- (none: without flags), in any spelling and order."""
+    """The recorded sweeps of --grid (all without it), and of those the ones run with the flags after --."""
     chosen = [e for e in entries if e["grid"] == args.grid] if args.grid else entries
     return chosen, [e for e in chosen if flag_set(e["flags"]) == flag_set(args.flags)]
 
 
-def listed(args, verb: str, sweep: str, entries: list[dict]) -> str:
-    return "; ".join(show_command(args, verb, sweep, e) for e in entries)
-
-
 def select(args, specs: list[JobSpec], folder: str) -> list[JobSpec]:
     """The jobs --envs / --methods / --seeds pick from a sweep."""
-    wanted = (parse_names(args.envs), parse_names(args.methods),
-              parse_seeds(args.seeds) if args.seeds else None)
-    picked = [s for s in specs
-              if all(w is None or x in w for w, x in zip(wanted, (s.env, s.variant, s.seed)))]
+    wanted = (parse_names(args.envs), parse_names(args.methods), parse_seeds(args.seeds) if args.seeds else None)
+    picked = [s for s in specs if all(w is None or x in w for w, x in zip(wanted, (s.env, s.variant, s.seed)))]
     if not picked:
-        have = [", ".join(map(str, dict.fromkeys(getattr(s, f) for s in specs)))
-                for f in ("env", "variant", "seed")]
-        raise SweepError(f"the sweep in {folder} has none of these jobs: it has envs {have[0]}; "
-                         f"methods {have[1]}; seeds {have[2]}")
+        have = [", ".join(map(str, dict.fromkeys(getattr(s, f) for s in specs))) for f in ("env", "variant", "seed")]
+        raise SweepError(f"the sweep in {folder} has none of these jobs: it has envs {have[0]}; methods {have[1]}; "
+                         f"seeds {have[2]}")
     return picked
 
 
@@ -1187,39 +1043,29 @@ DM_CONTROL_STEPS = 1000  # control steps of a dm_control episode, each rewarded 
 
 
 def dm_control_max(config: dict) -> float:
-    """The highest return of a dm_control episode: 1 per control step (--max-episode-steps cuts
-    them)."""
+    """The highest return of a dm_control episode: 1 per control step (--max-episode-steps cuts them)."""
     steps = config.get("max_episode_steps") or 0
-    return float(min(DM_CONTROL_STEPS, steps * config.get("action_repeat", 1)) if steps
-                 else DM_CONTROL_STEPS)
+    return float(min(DM_CONTROL_STEPS, steps * config.get("action_repeat", 1)) if steps else DM_CONTROL_STEPS)
 
 
 def normalisation(env: str, runs: list[dict], metric: str) -> tuple[list[tuple[float, float]], str]:
-    """(low, high) of each run's scores, so that (score - low) / (high - low) compares across tasks,
-    and what the report says: success rates as they are, dm_control returns by the task's maximum,
-    any other return min-max over this sweep's evaluations of the task."""
+    """(low, high) of each run's scores, to compare across tasks, and what the report says of it."""
     import envs
     if metric == "success":
         return [(0.0, 1.0)] * len(runs), "success rate, as it is"
     if envs._parse_name(env)[0] in ("dmc", "distracting"):
         highs = [dm_control_max(r["config"]) for r in runs]
         most = " or ".join(f"{h:g}" for h in sorted(set(highs)))
-        return [(0.0, h) for h in highs], (f"return / {most} (dm_control's maximum: 1 per "
-                                           "control step)")
+        return [(0.0, h) for h in highs], f"return / {most} (dm_control's maximum: 1 per control step)"
     values = np.concatenate([r["values"] for r in runs])
     lo, hi = float(values.min()), float(values.max())
     if hi == lo:
-        return [(lo, lo + 1.0)] * len(runs), (f"min-max over this sweep, but every return is "
-                                              f"{lo:.4g}: all 0")
-    return [(lo, hi)] * len(runs), (f"min-max over this sweep: (return - {lo:.4g}) / ({hi:.4g} - "
-                                    f"{lo:.4g})")
+        return [(lo, lo + 1.0)] * len(runs), f"min-max over this sweep, but every return is {lo:.4g}: all 0"
+    return [(lo, hi)] * len(runs), f"min-max over this sweep: (return - {lo:.4g}) / ({hi:.4g} - {lo:.4g})"
 
 
 def finished_runs(out: str, specs: list[JobSpec], metric: str | None) -> tuple[str, dict, int]:
-    """The metric (None: a success rate where every finished run has one, else the return), the
-    finished runs' eval.csv curves, {(env, variant): {seed: plot.load_run()}} (one that cannot be
-    read is skipped with one line), and how many finished."""
-    import plot
+    """(metric, {(env, variant): {seed: plot.load_run()}} of the finished runs, how many finished)."""
     finished = [(s, run_dirs(os.path.join(out, s.sweep, s.name))) for s in specs
                 if is_done(os.path.join(out, s.sweep, s.name))]
     finished = [(s, runs[0]) for s, runs in finished if len(runs) == 1]
@@ -1227,8 +1073,7 @@ def finished_runs(out: str, specs: list[JobSpec], metric: str | None) -> tuple[s
     runs = {}
     for spec, run in finished:
         try:
-            runs.setdefault((spec.env, spec.variant), {})[spec.seed] = plot.load_run(run, "eval",
-                                                                                     metric)
+            runs.setdefault((spec.env, spec.variant), {})[spec.seed] = plot.load_run(run, "eval", metric)
         except plot.PlotError as e:
             print(f"report: skipping {spec.name}: {e}")
     return metric, runs, len(finished)
@@ -1243,12 +1088,10 @@ def report_metric(runs: list[str]) -> str:
 
 
 def normalised(runs: dict, envs: list[str], metric: str) -> tuple[dict, dict]:
-    """Per task how its scores are normalised (normalisation(), every method's runs of it
-    together), and {(env, variant): {seed: (frames, normalised scores)}}."""
+    """Per task how its scores are normalised, and {(env, variant): {seed: (frames, scores)}}."""
     how, norm = {}, {}
     for env in envs:
-        members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env
-                   for seed, r in by_seed.items()]
+        members = [(k, seed, r) for k, by_seed in runs.items() if k[0] == env for seed, r in by_seed.items()]
         bounds, how[env] = normalisation(env, [r for _, _, r in members], metric)
         for (k, seed, r), (lo, hi) in zip(members, bounds):
             norm.setdefault(k, {})[seed] = (r["frames"], (r["values"] - lo) / (hi - lo))
@@ -1256,34 +1099,26 @@ def normalised(runs: dict, envs: list[str], metric: str) -> tuple[dict, dict]:
 
 
 def across_tasks(norm: dict, envs: list[str], variants: list[str]) -> tuple[dict, list[str]]:
-    """rliable's IQM and mean of the normalised scores over the tasks, with their stratified-
-    bootstrap 95% CIs (seeds resampled within each task): the aggregate panel's lines and the
-    table's rows."""
-    import plot
-    scores, seeds_of, lines, rows = {}, {}, {}, []
-    for v in variants:
-        seeds, frames, scores_v = shared_scores(norm, envs, v)
-        if scores_v is not None:
-            scores[v], seeds_of[v] = scores_v, (seeds, frames)
+    """rliable's IQM and mean over the tasks, stratified-bootstrap 95% CIs: the panel's lines, table rows."""
+    from scipy import stats
 
-    def iqm_and_mean(x):  # rliable's aggregate_iqm (25% off each end) and mean, at every frame
-        flat = np.sort(x.reshape(-1, x.shape[-1]), axis=0)
-        cut = int(0.25 * len(flat))
-        return np.concatenate([flat[cut:len(flat) - cut].mean(axis=0), flat.mean(axis=0)])
-    point, ci = plot.bootstrap(scores, iqm_and_mean) if scores else ({}, {})
-    for v, (seeds, frames) in seeds_of.items():
+    def iqm_and_mean(x):  # rliable's aggregate_iqm (scipy's trim_mean, 25% off each end) and mean, per frame
+        flat = x.reshape(-1, x.shape[-1])
+        return np.concatenate([stats.trim_mean(flat, 0.25, axis=0), flat.mean(axis=0)])
+    shared = {v: shared_scores(norm, envs, v) for v in variants}
+    shared = {v: s for v, s in shared.items() if s[2] is not None}
+    point, ci = plot.bootstrap({v: s[2] for v, s in shared.items()}, iqm_and_mean) if shared else ({}, {})
+    lines, rows = {}, []
+    for v, (seeds, frames, _) in shared.items():
         f, runs = len(frames), f"{plural(len(seeds), 'seed')} x {plural(len(envs), 'task')}"
-        lines[v] = (frames, point[v][:f], ci[v][:, :f], len(seeds),
-                    f"over {plural(len(envs), 'task')}")
-        iqm, mean = (f"{point[v][i]:.3f} [{ci[v][0, i]:.3f}, {ci[v][1, i]:.3f}]"
-                     for i in (f - 1, 2 * f - 1))
+        lines[v] = (frames, point[v][:f], ci[v][:, :f], len(seeds), f"over {plural(len(envs), 'task')}")
+        iqm, mean = (f"{point[v][i]:.3f} [{ci[v][0, i]:.3f}, {ci[v][1, i]:.3f}]" for i in (f - 1, 2 * f - 1))
         rows.append(f"| {v} | {runs} | {frames[-1]:.0f} | {iqm} | {mean} |")
     return lines, rows
 
 
 def shared_scores(norm: dict, envs: list[str], v: str):
-    """(seeds, frames, scores (seeds, tasks, frames)) of a method over the seeds finished on every
-    task, at the evaluations they all share; scores None where they share none."""
+    """(seeds, frames, scores) of a method's seeds finished on every task at their shared evaluations."""
     seeds = sorted(set.intersection(*(set(norm.get((e, v), {})) for e in envs)))
     curves = [norm[(e, v)][s] for s in seeds for e in envs]
     frames = reduce(np.intersect1d, [f for f, _ in curves]) if seeds else np.array([])
@@ -1296,10 +1131,7 @@ def shared_scores(norm: dict, envs: list[str], v: str):
 
 
 def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> str | None:
-    """Per task each method's mean over seeds (raw scores) and its 95% CI; over the tasks the IQM
-    and mean of the normalised scores (across_tasks). Only finished runs count. Writes
-    <out>/<sweep>/report.png and report.md; returns the tables."""
-    import plot
+    """Writes <out>/<sweep>/report.png and report.md of the finished runs; returns the tables."""
     metric, runs, finished = finished_runs(out, specs, metric)
     envs = [e for e in dict.fromkeys(s.env for s in specs) if any(k[0] == e for k in runs)]
     if not envs:
@@ -1311,14 +1143,12 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
     lines, rows = across_tasks(norm, envs, variants)
     draw_report(os.path.join(out, sweep, "report.png"), sweep, metric, panels, lines)
     tables = "\n\n".join([plot.summary_table(panels, metric), "\n".join([
-        "| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|",
-        *rows]), "\n".join(["| task | normalised score |", "|---|---|",
-                            *(f"| {e} | {how[e]} |" for e in envs)])])
-    note = (f"{finished} of {len(specs)} jobs finished; only finished runs count. Per task: the "
-            "mean over seeds of the raw scores with its 95% percentile-bootstrap CI. Over the "
-            "tasks: IQM and mean of the scores normalised per task (last table), with 95% "
-            "stratified-bootstrap CIs over the seeds finished on every task (rliable, "
-            f"{plot.BOOTSTRAP_REPS} resamples).")
+        "| method | runs | last frame | IQM [95% CI] | mean [95% CI] |", "|---|---|---|---|---|", *rows]),
+        "\n".join(["| task | normalised score |", "|---|---|", *(f"| {e} | {how[e]} |" for e in envs)])])
+    note = (f"{finished} of {len(specs)} jobs finished; only finished runs count. Per task: the mean over seeds "
+            "of the raw scores with its 95% percentile-bootstrap CI. Over the tasks: IQM and mean of the scores "
+            "normalised per task (last table), with 95% stratified-bootstrap CIs over the seeds finished on "
+            f"every task (rliable, {plot.BOOTSTRAP_REPS} resamples).")
     with open(os.path.join(out, sweep, "report.md"), "w") as f:
         f.write(f"# {sweep}\n\n{note}\n\n![curves](report.png)\n\n{tables}\n")
     print(f"{tables}\n\n{note}\nwrote {os.path.join(out, sweep, 'report.png')} and report.md")
@@ -1327,19 +1157,17 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
 
 def draw_report(png: str, sweep: str, metric: str, panels: dict, lines: dict) -> None:
     """report.png: a panel per task (raw scores), and one of the IQM over the tasks."""
-    import plot
     overall = f"over {plural(len(panels), 'task')}"
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     plot.plot({**panels, overall: lines} if lines else panels, png, ylabel,
-              f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised per task "
-              "to 0-1 (report.md says how)", ylabels={overall: "IQM of normalised score"},
+              f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised per task to 0-1 "
+              "(report.md says how)", ylabels={overall: "IQM of normalised score"},
               estimates={**{e: "mean ± 95% CI over seeds" for e in panels},
                          overall: "IQM, stratified-bootstrap 95% CI"})
 
 
 def task_lines(runs: dict, env: str, variants: list[str]) -> dict:
     """A task's panel: each method's mean over its finished seeds and its CI (plot.aggregate)."""
-    import plot
     lines = {}
     for v in (v for v in variants if runs.get((env, v))):
         curves = [(r["frames"], r["values"]) for r in runs[(env, v)].values()]
@@ -1349,9 +1177,7 @@ def task_lines(runs: dict, env: str, variants: list[str]) -> dict:
 
 # ------------------------------------------------------------------------ 10. command line
 def build_parser() -> argparse.ArgumentParser:
-    """sweep.py's flags; a bad one is a cli.ConfigError (one line). No abbreviations: --seed is
-    sear.py's."""
-    from harness import cli
+    """sweep.py's flags; a bad one is a cli.ConfigError (one line). No abbreviations: --seed is sear.py's."""
     p = cli.OneLineParser(prog="sweep.py", allow_abbrev=False, description=__doc__,
                           formatter_class=argparse.RawDescriptionHelpFormatter,
                           epilog="Unknown flags, and everything after --, go to sear.py.")
@@ -1359,12 +1185,12 @@ def build_parser() -> argparse.ArgumentParser:
     what.add_argument("--grid", help="a named grid of the paper: " + "; ".join(
         f"{name}: {g.doc}" for name, g in GRIDS.items()) + "; transfer: not available yet")
     what.add_argument("--envs", nargs="+", help="tasks (with --grid: a subset of the grid's)")
-    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its "
-                      "variants); METHOD+drm runs METHOD with --drm (drq+drm is DrM)")
+    what.add_argument("--methods", nargs="+", help="sear.py methods (with --grid: a subset of its variants); "
+                      "METHOD+drm runs METHOD with --drm (drq+drm is DrM)")
     what.add_argument("--seeds", nargs="+", help="1-5, 1,3,7 or 1-3 9 (default: the grid's, or 1)")
     what.add_argument("--name", help="sweep folder under --out (default: the grid's name, custom)")
-    what.add_argument("--out", help="folder of sweeps (default: sweeps; --status and --report in a "
-                      "sweep's folder: that folder)")
+    what.add_argument("--out", help="folder of sweeps (default: sweeps; --status and --report in a sweep's "
+                      "folder: that folder)")
     do = p.add_argument_group("what to do (default: run what is not finished)")
     do.add_argument("--status", action="store_true", help="print the jobs' states and exit")
     do.add_argument("--report", action="store_true", help="draw report.png / report.md and exit")
@@ -1374,17 +1200,14 @@ def build_parser() -> argparse.ArgumentParser:
                      help="default: the one the sweep's folder records (sweep.json), else local")
     eng.add_argument("--jobs", type=int, help="local: jobs at a time (default: cores // --threads)")
     eng.add_argument("--threads", type=int, default=1, help="torch threads per job (default 1)")
-    eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, "
-                     "the authors')")
-    eng.add_argument("--gpus-per-job", type=int, help="default: 1 where the partition (sinfo) or "
-                     "this machine has GPUs, else 0; here each job gets its own, round robin")
-    eng.add_argument("--mem-gb", type=int, help="memory per job (default: a measured run's peak "
-                     "for the job's method, batch and replay, + 25%%); here it bounds the jobs at "
-                     "a time")
-    eng.add_argument("--seeds-per-job", type=int, help="seeds of one task and method as one "
-                     "`sear.py --seeds` process where the method allows (default: as many as this "
-                     "machine's GPU holds, at most 16; 4 on SLURM with GPUs, fewer where a node "
-                     "holds fewer; 1 without a GPU)")
+    eng.add_argument("--time-limit", type=int, default=4300, help="minutes per job (default 4300, the authors')")
+    eng.add_argument("--gpus-per-job", type=int, help="default: 1 where the partition (sinfo) or this machine has "
+                     "GPUs, else 0; here each job gets its own, round robin")
+    eng.add_argument("--mem-gb", type=int, help="memory per job (default: a measured run's peak for the job's "
+                     "method, batch and replay, + 25%%); here it bounds the jobs at a time")
+    eng.add_argument("--seeds-per-job", type=int, help="seeds of one task and method as one `sear.py --seeds` "
+                     "process where the method allows (default: as many as this machine's GPU holds, at most 16; "
+                     "4 on SLURM with GPUs, fewer where a node holds fewer; 1 without a GPU)")
     eng.add_argument("--partition", help="SLURM partition")
     eng.add_argument("--account", help="SLURM account")
     eng.add_argument("--slurm-array-parallelism", type=int, help="SLURM: array tasks at a time")
@@ -1392,7 +1215,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from harness import cli
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)
     try:
@@ -1415,8 +1237,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def submitted_sweep(args) -> tuple[list[JobSpec], Grid | None]:
-    """--status / --report: the sweep --out and --name (or --grid) name, or, given neither, the
-    sweep's folder this is run in; its jobs from its record (find_sweep)."""
+    """--status / --report: the sweep --out and --name name, else the sweep folder this is run in."""
     if args.out is None and args.name is None and (os.path.exists(RECORD) or folder_specs(".")):
         args.out, args.name = os.path.split(os.getcwd())
     args.out, args.sweep = args.out or "sweeps", sweep_name(args)
@@ -1424,8 +1245,7 @@ def submitted_sweep(args) -> tuple[list[JobSpec], Grid | None]:
 
 
 def run(args, specs: list[JobSpec], metric: str | None, engine: str, why: str) -> int:
-    """The jobs neither done nor running elsewhere: run here (then the report) or submitted to
-    SLURM; --dry-run prints them. 0 when every job run here finished, 1 if one failed."""
+    """Run the jobs neither done nor running elsewhere, here or on SLURM; 1 if one run here failed."""
     sweep_dir = os.path.join(args.out, args.sweep)
     done, busy, todo = job_states(specs, sweep_dir)
     part = slurm_partition(args.partition) if engine == "slurm" else None
@@ -1455,45 +1275,47 @@ def job_states(specs: list[JobSpec], sweep_dir: str) -> tuple[list, list, list]:
     return done, busy, [s for s in specs if s not in done and s not in busy]
 
 
-def launch(args, specs: list[JobSpec], metric: str | None, engine: str, plan_: tuple) -> int:
-    """The packs' jobs through submitit: one SLURM array (this process only submits), or here."""
-    units, gpus, mem_gb, parallel = plan_
-    sweep_dir = os.path.join(args.out, args.sweep)
-    jobs = {u: new_job(sweep_dir, u, args.threads) for u in units}
-    executor = make_executor(args, engine, os.path.join(sweep_dir, ".submitit"), gpus, mem_gb)
-    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that
-        import cloudpickle                # they need no `import sweep` from whatever their cwd is
-        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
-    if engine != "local":
-        return submit(executor, list(jobs.values()), mem_gb, engine, sweep_dir)
-    return run_here(args, specs, metric, executor, jobs, job_devices(gpus, local_gpus(), parallel))
-
-
-def header(args, specs: list[JobSpec], states: tuple, units: list[Pack], where: str,
-           packing: str) -> None:
+def header(args, specs: list[JobSpec], states: tuple, units: list[Pack], where: str, packing: str) -> None:
     """The line that says what the sweep holds, what runs where, and the seeds per job."""
     done, busy, todo = states
     shape = (f"{len({s.env for s in specs})} envs x {len({s.variant for s in specs})} methods x "
              f"{len({s.seed for s in specs})} seeds")
     grouped = f" in {len(units)} process{'es' if len(units) != 1 else ''}" \
         if any(len(u.specs) > 1 for u in units) else ""
-    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running "
-          f"elsewhere, {len(todo)} to run{grouped} ({where})" + (f"; {packing}" if packing else ""),
-          flush=True)
+    print(f"sweep {args.sweep}: {len(specs)} jobs ({shape}): {len(done)} done, {len(busy)} running elsewhere, "
+          f"{len(todo)} to run{grouped} ({where})" + (f"; {packing}" if packing else ""), flush=True)
 
 
-def run_here(args, specs: list[JobSpec], metric: str | None, executor, jobs: dict,
-             devices: list[str]) -> int:
-    """The jobs on this machine, one per device slot at a time, then how many finished and the
-    report. 1 if one failed; 130 on Ctrl-C."""
+def launch(args, specs: list[JobSpec], metric: str | None, engine: str, plan_: tuple) -> int:
+    """The packs' jobs through submitit: one SLURM array (this process only submits), or here."""
+    units, gpus, mem_gb, parallel = plan_
+    sweep_dir = os.path.join(args.out, args.sweep)
+    jobs = {u: new_job(sweep_dir, u, args.threads) for u in units}
+    executor = submitit.AutoExecutor(folder=os.path.join(sweep_dir, ".submitit"), cluster=engine)
+    params = dict(timeout_min=args.time_limit, name=f"sweep-{args.sweep}", mem_gb=mem_gb, cpus_per_task=args.threads,
+                  # locally SearJob.devices gives each job its GPUs; submitit's gives all the same first ones
+                  gpus_per_node=0 if engine == "local" else gpus or None,  # on SLURM none asked without GPUs
+                  slurm_partition=args.partition, slurm_account=args.account,
+                  slurm_array_parallelism=args.slurm_array_parallelism)
+    executor.update_parameters(**{k: v for k, v in params.items() if v is not None})
+    if SearJob.__module__ != "__main__":  # imported: ship this module's code with the jobs, so that they need
+        import cloudpickle                # no `import sweep` from whatever their cwd is
+        cloudpickle.register_pickle_by_value(sys.modules[SearJob.__module__])
+    if engine != "local":
+        return submit(executor, list(jobs.values()), mem_gb, engine, sweep_dir)
+    return run_here(args, specs, metric, executor, jobs, job_devices(gpus, local_gpus(), parallel))
+
+
+def run_here(args, specs: list[JobSpec], metric: str | None, executor, jobs: dict, devices: list[str]) -> int:
+    """The jobs on this machine, then the report; 1 if one failed, 130 on Ctrl-C."""
     driver = whoami()
     for job_dir in (d for job in jobs.values() for d in job.state_dirs()):
         mark_queued(job_dir, driver)
     try:
         results = run_local(executor, jobs, devices)
     except KeyboardInterrupt:
-        print("\ninterrupted: re-run the same command to continue (finished runs are kept, "
-              "interrupted ones resume from their last snapshot)", file=sys.stderr)
+        print("\ninterrupted: re-run the same command to continue (finished runs are kept, interrupted ones "
+              "resume from their last snapshot)", file=sys.stderr)
         return 130
     outcomes = [r for u, r in results.items() for _ in u.specs]  # a pack's is each seed's
     failed = sum(r.startswith(("failed", "interrupted")) for r in outcomes)

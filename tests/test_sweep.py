@@ -515,7 +515,7 @@ def test_slurm_asks_the_estimated_memory_and_refuses_what_no_node_holds(tmp_path
 
 
 def test_local_memory_bounds_the_jobs_at_a_time_and_refuses_a_job_too_big(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(sweep, "cpu_count", lambda: 8)
+    monkeypatch.setattr(sweep, "usable_cores", lambda: 8)
     monkeypatch.setattr(sweep, "local_memory_gb", lambda: 24.0)
     argv = ["--out", str(tmp_path / "sweeps"), "--envs", "walker-walk", "--methods", "sear", "--seeds", "1-4",
             "--dry-run"]
