@@ -1088,3 +1088,15 @@ def test_an_old_sweep_folder_without_the_record_shows_the_jobs_its_folders_hold(
     assert sweep.main(["--out", str(out), "--grid", "kitchen", "--status"]) == 2  # never run: nothing to show
     assert capsys.readouterr().err == (f"sweep.py: error: no sweep in {out / 'kitchen'}; {out} holds custom: "
                                        f"python sweep.py --out {out} --status\n")
+
+
+def test_every_grid_has_its_row_in_the_docs_table():
+    """docs/sweeps.md's grid table names every --grid, its methods and its seeds."""
+    table = (ROOT / "docs" / "sweeps.md").read_text().split("## The grids", 1)[1].split("\n\n", 2)[1]
+    rows = {line.split("|")[1].strip(" `"): line for line in table.splitlines()[2:]}
+    assert set(rows) == set(sweep.GRIDS), set(rows) ^ set(sweep.GRIDS)
+    for name in sweep.GRIDS:
+        _, specs, _ = plan(["--grid", name])
+        assert f"{len({s.seed for s in specs})} ×" in rows[name], name
+        methods = {s.variant.split("-")[0] for s in specs}
+        assert all(m in rows[name] for m in methods) or "variants" in rows[name], name
