@@ -7,14 +7,10 @@ Usage:  python plot.py runs/ --out runs/curves.png
         python plot.py 'runs/metaworld-mt10*' --metric success --per-task --out runs/mt10.png
         python plot.py maps RUN_A [RUN_B ...] --out runs/maps.png [--frames N]
 
-Arguments are run directories (holding config.json), parent folders or globs. One line per --group
-value (default the method) and per setting in which runs on the same env differ, named by all of
-them (docs/figures.md); one panel per env. A line is the mean over its runs, each drawn to its own
-end (dashed where not all reached a frame), with rliable's percentile-bootstrap 95% CI of the mean
-over 2+ runs, which never leaves the range of their values. A markdown table of the final values
-goes to stdout (docs/outputs.md). `plot.py maps`: what the encoder's last convolution responds to,
-and each channel's share of activation on the robot (docs/inspection.md). Bad input is one line on
-stderr, exit code 2; a run that has not written the CSV yet is skipped with one line.
+Arguments are run directories (holding config.json), parent folders or globs. One line per --group value and
+per setting in which runs on the same env differ, one panel per env (docs/figures.md); the band is rliable's
+percentile-bootstrap 95% CI of the mean. A markdown table of the final values goes to stdout (docs/outputs.md);
+`plot.py maps`: docs/inspection.md. Bad input is one line on stderr, exit code 2.
 """
 from __future__ import annotations
 
@@ -42,9 +38,6 @@ class NoLogYet(PlotError):
     """A run without the CSV asked for (it stopped before its first row): skipped, not fatal."""
 
 
-FIRST_ROW = {"eval": "its first evaluation", "train": "its first episode"}
-
-
 # ---------------------------------------------------------------- finding and reading runs
 def find_runs(paths: list[str]) -> list[str]:
     """Run directories named by `paths` (directories, parents of runs, or globs), sorted, unique."""
@@ -67,15 +60,16 @@ def find_runs(paths: list[str]) -> list[str]:
 def read_csv(path: str, csv_name: str) -> tuple[list[str], list[dict]]:
     """(header, rows) of a run's log; NoLogYet when the run has not written it yet."""
     if not os.path.exists(path):
-        raise NoLogYet(f"no {csv_name}.csv (the run stopped before {FIRST_ROW[csv_name]} ended)")
+        first = {"eval": "its first evaluation", "train": "its first episode"}[csv_name]
+        raise NoLogYet(f"no {csv_name}.csv (the run stopped before {first} ended)")
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
         return reader.fieldnames or [], list(reader)
 
 
 def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> dict:
-    """{"dir", "config", "frames", "values"} of one run; frames sorted and unique (a repeated frame,
-    say after a resume, keeps its last row); empty cells skipped."""
+    """{"dir", "config", "frames", "values"} of one run; frames sorted and unique (a repeated frame, say after a
+    resume, keeps its last row); empty cells skipped."""
     try:
         with open(os.path.join(run_dir, "config.json")) as f:
             config = json.load(f)
@@ -84,8 +78,7 @@ def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> di
     path = os.path.join(run_dir, f"{csv_name}.csv")
     header, rows = read_csv(path, csv_name)
     if metric not in header:
-        raise PlotError(f"{path}: " + (f"no '{metric}' column (has {','.join(header)})" if header
-                                       else "empty"))
+        raise PlotError(f"{path}: " + (f"no '{metric}' column (has {','.join(header)})" if header else "empty"))
     points = {}
     for row in rows:
         try:
@@ -96,8 +89,7 @@ def load_run(run_dir: str, csv_name: str = "eval", metric: str = "return") -> di
     if not points:
         raise PlotError(f"{path}: no rows with a '{metric}' value")
     frames = np.array(sorted(points))
-    return {"dir": run_dir, "config": config, "frames": frames,
-            "values": np.array([points[x] for x in frames])}
+    return {"dir": run_dir, "config": config, "frames": frames, "values": np.array([points[x] for x in frames])}
 
 
 def load_task_runs(run_dir: str, metric: str) -> list[dict]:
@@ -105,21 +97,20 @@ def load_task_runs(run_dir: str, metric: str) -> list[dict]:
     path = os.path.join(run_dir, "eval.csv")
     tasks = [c[len(metric) + 1:] for c in read_csv(path, "eval")[0] if c.startswith(metric + "/")]
     if not tasks:
-        raise PlotError(f"{path}: no per-task columns ({metric}/<task>); --per-task needs task-set "
-                        f"runs (metaworld-mt3, -mt10, -mt50)")
+        raise PlotError(f"{path}: no per-task columns ({metric}/<task>); --per-task needs task-set runs "
+                        f"(metaworld-mt3, -mt10, -mt50)")
     return [{**load_run(run_dir, "eval", f"{metric}/{task}"), "task": task} for task in tasks]
 
 
 # ---------------------------------------------------------------- statistics
-# Resamples of every bootstrap CI (plot.py's, sweep.py's report's). One method of a grid (5 seeds x
-# 10 tasks x 250 evaluations) on 2 busy cores: rliable's default of 50,000 took 41 s, 10,000 10 s.
+# Resamples of every bootstrap CI (plot.py's, sweep.py's report's). One method of a grid (5 seeds x 10 tasks x
+# 250 evaluations) on 2 busy cores: rliable's default of 50,000 took 41 s, 10,000 10 s.
 BOOTSTRAP_REPS = 10_000
 
 
 def bootstrap(scores: dict, statistic) -> tuple[dict, dict]:
-    """rliable's point estimates and 95% percentile-bootstrap CIs ((2, ...) bounds) of `statistic`
-    of each scores[k], (runs, tasks, frames): runs resampled within each task (stratified), from a
-    fixed seed, so that a figure is the same every time."""
+    """rliable's point estimates and stratified 95% percentile-bootstrap CIs ((2, ...) bounds) of `statistic` of each
+    scores[k], (runs, tasks, frames), from a fixed seed: a figure is the same every time."""
     from rliable import library as rly
     with warnings.catch_warnings():  # arch's note on how rliable seeds it, not about these numbers
         warnings.simplefilter("ignore", FutureWarning)
@@ -128,9 +119,8 @@ def bootstrap(scores: dict, statistic) -> tuple[dict, dict]:
 
 
 def stack_curves(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False):
-    """(frames, values): the union of the curves' frames, and each curve on them (NaN where it has
-    no value): eval.csv's at its own evaluation frames only, train.csv's (interpolate) linearly
-    interpolated within its own span."""
+    """(frames, values): the union of the curves' frames, and each curve on them (NaN where it has no value):
+    eval.csv's at its own frames only, train.csv's (interpolate) interpolated within its own span."""
     if not curves:
         raise PlotError("no runs to average")
     grid = np.unique(np.concatenate([f for f, _ in curves]))
@@ -142,10 +132,9 @@ def stack_curves(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool 
 
 
 def aggregate(curves: list[tuple[np.ndarray, np.ndarray]], interpolate: bool = False):
-    """(frames, mean, ci) of (frames, values) curves, each to its own end: at every frame the mean
-    over the curves that have it (coverage() counts them) and its 95% CI, (2, frames) bounds from
-    rliable's percentile bootstrap over those curves (NaN where one curve has it). A resampled mean
-    lies between the lowest and the highest value: the band never leaves the values' range."""
+    """(frames, mean, ci) of (frames, values) curves, each to its own end: at every frame the mean over the curves that
+    have it and rliable's 95% CI over them, (2, frames) bounds, NaN where one curve has it. A resampled mean lies
+    between the lowest and the highest value: the band never leaves the values' range."""
     grid, ys = stack_curves(curves, interpolate)
     ci = np.full((2, len(grid)), np.nan)
     present, which = np.unique(~np.isnan(ys), axis=1, return_inverse=True)  # frames by their runs
@@ -167,31 +156,30 @@ def env_of(run: dict) -> str:
 
 
 def group_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
-    """{label: runs}, label the runs' config values of `keys` ("sear / walker-walk"), the method
-    with its variant (drq+drm: --drm)."""
+    """{label: runs}, label the runs' config values of `keys` ("sear / walker-walk"), the method with its variant
+    (drq+drm: --drm)."""
     groups = {}
     for run in runs:
         missing = [k for k in keys if k not in run["config"]]
         if missing:
             raise PlotError(f"{run['dir']}/config.json: no key {missing[0]!r} to group by")
-        groups.setdefault(" / ".join(cli.method_label(run["config"]) if k == "method"
-                                     else str(run["config"][k]) for k in keys), []).append(run)
+        groups.setdefault(" / ".join(cli.method_label(run["config"]) if k == "method" else str(run["config"][k])
+                                     for k in keys), []).append(run)
     return dict(sorted(groups.items()))
 
 
-# Config values that do not change what a line means: the seed, the budget (each run is drawn to its
-# own end), where and how it is computed, what it writes, and how often and how long it is
-# evaluated (the curve estimates the same thing). cli's RESUME_MAY_CHANGE is a subset.
-NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer",
-                 "save_video", "log_every", "snapshot_minutes", "resume", "learned_mask_iou",
-                 "evaluate", "eval_every", "eval_episodes", "eval_episodes_per_task", "compile",
-                 "cuda_graph", "cuda_graphs", "batch_seeds", "tf32", "replay_device"}
+# Config values that do not change what a line means (docs/figures.md): the seed, the budget, where and how it is
+# computed, what it writes, how often and how long it is evaluated. cli's RESUME_MAY_CHANGE is a subset.
+NOT_A_SETTING = {"seed", "run_root", "frames", "device", "prefetch", "threads", "save_buffer", "save_video",
+                 "log_every", "snapshot_minutes", "resume", "learned_mask_iou", "evaluate", "eval_every",
+                 "eval_episodes", "eval_episodes_per_task", "compile", "cuda_graph", "cuda_graphs", "batch_seeds",
+                 "tf32", "replay_device"}
 
 
 def differing_settings(runs: list[dict], keys: list[str]) -> list[str]:
-    """The settings that tell a panel's lines apart: those (but NOT_A_SETTING, the grouping keys and
-    the env) that acted (cli.acting_settings) and differ between runs on the SAME env, so that a
-    value set per task does not count; a key only some runs record differs only among them."""
+    """The settings that tell a panel's lines apart: those (but NOT_A_SETTING, the grouping keys and the env) that
+    acted and differ between runs on the SAME env, so that a value set per task does not count; a key only some runs
+    record differs only among them."""
     by_env = {}
     for r in runs:
         by_env.setdefault(env_of(r), []).append(cli.acting_settings(r["config"]))
@@ -206,8 +194,7 @@ def differ(key: str, configs: list[dict]) -> bool:
 
 
 def split_by_config(label: str, group: list[dict], differ: list[str]) -> dict[str, list[dict]]:
-    """One line per setting: a group's runs split by `differ`, each line named by its values of all
-    of them ("sear mask_source=learned:seg.pt")."""
+    """One line per setting: a group's runs split by `differ`, each named by its values of all of them."""
     lines = {}
     for run in group:
         acting = cli.acting_settings(run["config"]) if differ else {}
@@ -225,8 +212,8 @@ def task_mean_runs(task_runs: list[dict]) -> list[dict]:
         frames = reduce(np.intersect1d, [t["frames"] for t in tasks])
         if len(frames):
             values = np.mean([t["values"][np.isin(t["frames"], frames)] for t in tasks], axis=0)
-            means.append({"dir": d, "config": tasks[0]["config"], "frames": frames,
-                          "values": values, "task": f"mean over {len(tasks)} tasks"})
+            means.append({"dir": d, "config": tasks[0]["config"], "frames": frames, "values": values,
+                          "task": f"mean over {len(tasks)} tasks"})
     return means
 
 
@@ -235,23 +222,19 @@ def short_frames(x, _pos=None) -> str:
     return f"{x / 1e6:g}M" if abs(x) >= 1e6 else f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
 
 
-def draw_mean(ax, frames, mean, full, color: str, label: str, dashed: dict | None = None,
-              **solid) -> bool:
-    """A mean solid where `full` (every run has the frame), dashed elsewhere, the dashed part joined
-    to the solid one at its neighbouring points. True if some part is dashed."""
+def draw_mean(ax, frames, mean, full, color: str, label: str, dashed: dict | None = None, **solid) -> bool:
+    """A mean solid where `full` (every run has the frame), dashed elsewhere, joined to the solid part at its
+    neighbouring points. True if some part is dashed."""
     ax.plot(frames, np.where(full, mean, np.nan), color=color, label=label, **solid)
     partial = ~np.asarray(full)
     if partial.any():
         joined = partial | np.convolve(partial, [1, 1, 1], mode="same").astype(bool)
-        ax.plot(frames, np.where(joined, mean, np.nan), color=color, ls="--",
-                **(dashed or {"lw": 1}))
+        ax.plot(frames, np.where(joined, mean, np.nan), color=color, ls="--", **(dashed or {"lw": 1}))
     return bool(partial.any())
 
 
-# The layout rule (docs/figures.md): every panel's axes keep AXES_HEIGHT inches (the figure grows
-# instead); a legend stays inside its axes only on a single panel with at most LEGEND_INSIDE entries
-# of at most LABEL_INSIDE characters, else one legend serves all panels, in the grid's empty slot or
-# below the panels, its labels wrapped to fit; titles are wrapped to their axes' (figure's) width.
+# The layout rule (docs/figures.md): axes keep AXES_HEIGHT inches (the figure grows instead); a legend stays inside a
+# single panel's axes with at most LEGEND_INSIDE entries of at most LABEL_INSIDE characters, else serves all panels.
 PANEL_SIZE = (5.0, 3.6)      # inches per panel before titles and legends
 AXES_HEIGHT = 2.6            # inches
 LEGEND_INSIDE, LABEL_INSIDE = 6, 48
@@ -263,17 +246,15 @@ def fit_text(text, width_px: float, renderer) -> None:
     chars = max(map(len, paragraphs))
     while chars > 8 and text.get_window_extent(renderer).width > width_px:
         chars -= max(1, chars // 20)
-        text.set_text("\n".join(textwrap.fill(p, chars, break_long_words=False)
-                                for p in paragraphs))
+        text.set_text("\n".join(textwrap.fill(p, chars, break_long_words=False) for p in paragraphs))
 
 
 def place_legend(fig, entries: dict, title: str | None, spare, renderer):
-    """One legend for every panel: in the grid's empty slot (`spare`) if it fits there, else below
-    the panels (the figure grows); as many columns as fit, labels wrapped to a column."""
+    """One legend for every panel: in the grid's empty slot (`spare`) if it fits there, else below the panels (the
+    figure grows); as many columns as fit, labels wrapped to a column."""
     where = spare if spare is not None else fig
     width = 0.98 * where.get_window_extent(renderer).width
-    loc = {"loc": "upper left", "frameon": False} if spare is not None else {
-        "loc": "outside lower center"}
+    loc = {"loc": "upper left", "frameon": False} if spare is not None else {"loc": "outside lower center"}
     legend = widest_legend(fig, where, entries, width, renderer, title=title, **loc)
     box = legend.get_window_extent(renderer)
     if spare is not None and box.height > spare.get_window_extent(renderer).height:
@@ -295,42 +276,39 @@ def widest_legend(fig, where, entries: dict, width: float, renderer, **kwargs):
         if chars < max(map(len, entries)) and ncol > 1:
             continue
         labels = [textwrap.fill(label, chars, break_long_words=False) for label in entries]
-        legend = where.legend(list(entries.values()), labels, ncol=ncol, fontsize="small",
-                              title_fontsize="small", **kwargs)
+        legend = where.legend(list(entries.values()), labels, ncol=ncol, fontsize="small", title_fontsize="small",
+                              **kwargs)
         if legend.get_window_extent(renderer).width <= width or ncol == 1:
             return legend
         legend.remove()
 
 
 def plot(panels: dict, out: str, ylabel: str, title: str, baseline: tuple | None = None,
-         references: dict | None = None, estimates: dict | None = None,
-         ylabels: dict | None = None):
-    """panels: {panel: {label: (frames, mean, ci, runs per frame, envs)}}. estimates: {panel: what
-    its lines and bands are} where not "mean ± 95% CI" (the legend's title, or the panels' titles
-    where panels differ); ylabels: {panel: its y-label} where not `ylabel`; references: {panel:
-    load_reference curves}, each cut to the last frame of its panel's runs."""
+         references: dict | None = None, estimates: dict | None = None, ylabels: dict | None = None):
+    """panels: {panel: {label: (frames, mean, ci, runs per frame, envs)}}. estimates: {panel: what its lines and bands
+    are} where not "mean ± 95% CI" (the legend's title, or each panel's where they differ); ylabels: {panel: its
+    y-label} where not `ylabel`; references: {panel: load_reference curves}."""
     import matplotlib
     matplotlib.use("Agg")  # files only: no display needed on a cluster node
     import matplotlib.pyplot as plt
     cols = min(len(panels), 3)
     rows = math.ceil(len(panels) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows),
-                             squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(rows, cols, figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows), squeeze=False,
+                             layout="constrained")
     texts, one = panel_texts(panels, title, ylabel, estimates or {}, ylabels or {})
     dashed, entries = draw_panels(axes.flat, panels, texts, baseline, references or {})
     for ax in axes.flat[len(panels):]:
         ax.axis("off")
     legend_title = "; ".join([*([one] if one else []), *(["dashed: fewer runs"] if dashed else [])])
-    lay_out(fig, axes, len(panels), entries, legend_title or None,
-            title if len(panels) > 1 else None)
+    lay_out(fig, axes, len(panels), entries, legend_title or None, title if len(panels) > 1 else None)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=120)
     plt.close(fig)
 
 
 def panel_texts(panels: dict, title: str, ylabel: str, estimates: dict, ylabels: dict):
-    """({panel: (title, y-label)}, the estimate every panel shows, or None where they differ: then
-    each panel's title says its own)."""
+    """({panel: (title, y-label)}, the estimate every panel shows, or None where they differ: then each panel's title
+    says its own)."""
     what = {panel: estimates.get(panel, "mean ± 95% CI") for panel in panels}
     one = next(iter(what.values())) if len(set(what.values())) == 1 else None
     titles = {panel: panel if len(panels) > 1 else title for panel in panels}
@@ -339,28 +317,21 @@ def panel_texts(panels: dict, title: str, ylabel: str, estimates: dict, ylabels:
 
 
 def draw_panels(axes, panels: dict, texts: dict, baseline, references: dict) -> tuple[bool, dict]:
-    """Each panel's lines, baseline and references, then its (title, y-label). -> whether a line
-    is dashed somewhere, and the legend's entries: the lines first, then the others."""
+    """Each panel's lines (mean and band), baseline and references, then its (title, y-label). -> whether a line is
+    dashed somewhere, and the legend's entries: the lines first, then the others."""
     colors = {label: f"C{i % 10}" for i, label in  # same line, same colour on every panel
               enumerate(sorted({label for curves in panels.values() for label in curves}))}
     dashed, entries, others = False, {}, {}
     for ax, (panel, curves) in zip(axes, panels.items()):
-        dashed |= draw_lines(ax, curves, colors)
+        for label, (frames, mean, ci, n, _env) in curves.items():
+            n = np.broadcast_to(np.asarray(n), np.shape(frames))  # runs per frame
+            dashed |= draw_mean(ax, frames, mean, n == n.max(), colors[label], f"{label} (n={n.max()})")
+            if n.max() > 1:
+                ax.fill_between(frames, ci[0], ci[1], color=colors[label], alpha=0.2, lw=0)
         entries.update(legend_entries(ax, entries))
         finish_panel(ax, baseline, references.get(panel, []), curves, texts[panel])
         others.update(legend_entries(ax, entries))
     return dashed, {**entries, **others}
-
-
-def draw_lines(ax, curves: dict, colors: dict) -> bool:
-    """A panel's lines: mean and band (n: runs per frame). True if one is dashed somewhere."""
-    dashed = False
-    for label, (frames, mean, ci, n, _env) in curves.items():
-        n = np.broadcast_to(np.asarray(n), np.shape(frames))
-        dashed |= draw_mean(ax, frames, mean, n == n.max(), colors[label], f"{label} (n={n.max()})")
-        if n.max() > 1:
-            ax.fill_between(frames, ci[0], ci[1], color=colors[label], alpha=0.2, lw=0)
-    return dashed
 
 
 def legend_entries(ax, known: dict) -> dict:
@@ -369,8 +340,8 @@ def legend_entries(ax, known: dict) -> dict:
 
 
 def finish_panel(ax, baseline, references: list, curves: dict, texts: tuple[str, str]) -> None:
-    """A panel's baseline, reference curves (cut to its runs' last frame), title and axes; a success
-    rate on [0, 1], whatever matplotlib's margins do."""
+    """A panel's baseline, reference curves (cut to its runs' last frame), title and axes; a success rate on [0, 1],
+    whatever matplotlib's margins do."""
     from matplotlib.ticker import FuncFormatter
     if baseline is not None:  # e.g. a random policy's mean (benchmarks/random_policy.py)
         ax.axhline(baseline[0], color="0.4", ls="--", lw=1, label=baseline[1])
@@ -384,8 +355,8 @@ def finish_panel(ax, baseline, references: list, curves: dict, texts: tuple[str,
 
 
 def lay_out(fig, axes, n: int, entries: dict, legend_title: str | None, suptitle: str | None):
-    """The legend (inside a single panel when short, else in the grid's empty slot or below), titles
-    wrapped to fit, and the n panels' axes kept AXES_HEIGHT tall (the figure grows)."""
+    """The legend (inside a single panel when short, else in the grid's empty slot or below), titles wrapped to fit,
+    and the n panels' axes grown (with the figure) to AXES_HEIGHT."""
     used, renderer = list(axes.flat[:n]), fig.canvas.get_renderer()
     suptitle = fig.suptitle(suptitle) if suptitle is not None else None
     if n == 1 and len(entries) <= LEGEND_INSIDE and max(map(len, entries)) <= LABEL_INSIDE:
@@ -402,8 +373,7 @@ def lay_out(fig, axes, n: int, entries: dict, legend_title: str | None, suptitle
 
 
 def keep_axes_height(fig, used: list, rows: int) -> None:
-    """Grow the figure until its shortest axes is AXES_HEIGHT inches tall (the layout runs again on
-    each draw)."""
+    """Grow the figure until its shortest axes is AXES_HEIGHT inches tall (the layout runs again on each draw)."""
     for _ in range(4):
         fig.canvas.draw()
         short = AXES_HEIGHT - min(ax.get_position().height for ax in used) * fig.get_figheight()
@@ -413,24 +383,20 @@ def keep_axes_height(fig, used: list, rows: int) -> None:
 
 
 def summary_table(panels: dict, metric: str) -> str:
-    """One row per line: its runs (and how many reached its last frame, if not all), its final mean
-    and that mean's 95% CI."""
-    lines = [f"| env | group | seeds | last frame | final {metric} (mean [95% CI]) |",
-             "|---|---|---|---|---|"]
+    """One row per line: its runs (and how many reached its last frame, if not all), its final mean and CI."""
+    lines = [f"| env | group | seeds | last frame | final {metric} (mean [95% CI]) |", "|---|---|---|---|---|"]
     for curves in panels.values():
         for label, (frames, mean, ci, n, env) in curves.items():
             n = np.broadcast_to(np.asarray(n), np.shape(frames))
             seeds = f"{n.max()}" + (f" ({n[-1]} at the last frame)" if n[-1] < n.max() else "")
-            final = f"{mean[-1]:.4g}" + ("" if n[-1] == 1 else
-                                         f" [{ci[0][-1]:.4g}, {ci[1][-1]:.4g}]")
+            final = f"{mean[-1]:.4g}" + ("" if n[-1] == 1 else f" [{ci[0][-1]:.4g}, {ci[1][-1]:.4g}]")
             lines.append(f"| {env} | {label} | {seeds} | {frames[-1]:.0f} | {final} |")
     return "\n".join(lines)
 
 
 # ---------------------------------------------------------------- --reference: published curves
-# DrQ-v2's format (facebookresearch/drqv2, curves/dmc_<task>.csv): one row per seed and evaluation,
-# columns seed, frame, episode_reward, task and agent; without a task column, the file name says
-# the task.
+# DrQ-v2's format (facebookresearch/drqv2, curves/dmc_<task>.csv): one row per seed and evaluation, columns seed,
+# frame, episode_reward, task and agent; without a task column, the file name says the task.
 REFERENCE_COLUMNS = ("seed", "frame", "episode_reward")
 
 
@@ -446,8 +412,8 @@ def parse_reference(spec: str) -> tuple[str, str | None]:
 
 
 def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
-    """{task key: {"label", "frames", "mean", "min", "max", "seeds", "values"}} of a published curve
-    file: per task its seeds on the frames they all have, values (seeds, frames)."""
+    """{task key: {"label", "frames", "mean", "min", "max", "seeds", "values"}} of a published curve file: per task its
+    seeds on the frames they all have, values (seeds, frames)."""
     curves = {}
     for task, (by_seed, agents) in read_reference(path).items():
         if len(agents) > 1:
@@ -457,9 +423,9 @@ def load_reference(path: str, label: str | None = None) -> dict[str, dict]:
         if len(frames) == 0:
             raise PlotError(f"--reference {path}: the seeds of {task} share no frames")
         ys = np.array([[points[x] for x in frames] for points in by_seed.values()])
-        name = label or f"{agents.pop() or os.path.basename(path)} (published)"
-        curves[task] = {"label": name, "frames": frames, "mean": ys.mean(axis=0), "values": ys,
-                        "min": ys.min(axis=0), "max": ys.max(axis=0), "seeds": len(by_seed)}
+        curves[task] = {"label": label or f"{agents.pop() or os.path.basename(path)} (published)",
+                        "frames": frames, "mean": ys.mean(axis=0), "values": ys, "min": ys.min(axis=0),
+                        "max": ys.max(axis=0), "seeds": len(by_seed)}
     return curves
 
 
@@ -470,9 +436,8 @@ def read_reference(path: str) -> dict[str, tuple[dict, set]]:
     header, rows = read_csv(path, "eval")
     missing = [c for c in REFERENCE_COLUMNS if c not in header]
     if missing:
-        raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has "
-                        f"columns {', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv "
-                        "name)")
+        raise PlotError(f"--reference {path}: no {missing[0]!r} column (a published curve has columns "
+                        f"{', '.join(REFERENCE_COLUMNS)}, and task or a dmc_<task>.csv name)")
     if not rows:
         raise PlotError(f"--reference {path}: no rows")
     file_task = os.path.splitext(os.path.basename(path))[0].removeprefix("dmc_")
@@ -488,39 +453,38 @@ def read_reference(path: str) -> dict[str, tuple[dict, set]]:
 
 
 def references_for(panel_envs: dict[str, set], references: list[tuple[str, dict]]) -> dict:
-    """{panel: the reference curves drawn on it}: each on every panel holding a run on its task; a
-    reference that matches no panel is an error."""
+    """{panel: the reference curves drawn on it}: each on every panel holding a run on its task; a reference that
+    matches no panel is an error."""
     drawn = {panel: [] for panel in panel_envs}
     plotted = sorted({e for envs in panel_envs.values() for e in envs})
     for path, curves in references:
         if not {task_key(e) for e in plotted} & set(curves):
-            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no "
-                            f"plotted env ({', '.join(plotted)})")
+            raise PlotError(f"--reference {path}: its tasks ({', '.join(sorted(curves))}) match no plotted env "
+                            f"({', '.join(plotted)})")
         for panel, envs in panel_envs.items():
             drawn[panel] += [curves[t] for t in sorted({task_key(e) for e in envs} & set(curves))]
     return drawn
 
 
 def draw_reference(ax, ref: dict, i: int = 0, upto: float | None = None):
-    """A published curve: the mean over its seeds and a min-max band, cut to frames <= `upto` (the
-    runs' last frame: its later values would set the y range); the x range stays the runs'."""
+    """A published curve: the mean over its seeds and a min-max band, cut to frames <= `upto` (the runs' last frame:
+    its later values would set the y range); the x range stays the runs'."""
     xlim = ax.get_xlim()
     keep = slice(None) if upto is None else ref["frames"] <= upto
-    ax.plot(ref["frames"][keep], ref["mean"][keep], color="k", ls=(":", "-.", "--")[i % 3], lw=1.5,
-            marker="x", ms=4, label=f"{ref['label']} (n={ref['seeds']}: mean, min-max)")
-    ax.fill_between(ref["frames"][keep], ref["min"][keep], ref["max"][keep], color="k", alpha=0.08,
-                    lw=0)
+    ax.plot(ref["frames"][keep], ref["mean"][keep], color="k", ls=(":", "-.", "--")[i % 3], lw=1.5, marker="x",
+            ms=4, label=f"{ref['label']} (n={ref['seeds']}: mean, min-max)")
+    ax.fill_between(ref["frames"][keep], ref["min"][keep], ref["max"][keep], color="k", alpha=0.08, lw=0)
     if xlim[1] >= 1:
         ax.set_xlim(xlim)
 
 
 # ---------------------------------------------------------------- activation maps: plot.py maps
-# The paper's recipe (section 5): the ReLU output of the encoder's last convolution (32 x 35 x 35),
-# each channel resized to the image (84 x 84), normalised to [0, 1], coloured and blended over the
-# image; beyond the paper, each channel's share of activation mass on the robot.
+# The paper's recipe (section 5): the ReLU output of the encoder's last convolution (32 x 35 x 35), each channel
+# resized to the image (84 x 84), normalised to [0, 1], coloured and blended over the image; beyond the paper,
+# each channel's share of activation mass on the robot.
 MAPS_STRIDE = 25  # agent steps between the frames shown
-# Map unit j sees input pixels 2j .. 2j + 14 (3x3 stride 2, then three 3x3 stride 1, no padding),
-# centred on 2j + 7; the overlays stretch the map over the image (the paper's resize) instead.
+# Map unit j sees input pixels 2j .. 2j + 14 (3x3 stride 2, then three 3x3 stride 1, no padding), centred on 2j + 7;
+# the overlays stretch the map over the image (the paper's resize) instead.
 RF_STRIDE, RF_OFFSET = 2, 7
 ROBOT, ENVIRONMENT = 2.0, 0.5  # share > 2x the mask fraction: a robot channel; < 0.5x: environment
 
@@ -547,15 +511,13 @@ def trained_agent(cfg, state, action_dim: int):
     try:
         agent.load_state_dict(state["agent"])
     except (KeyError, RuntimeError) as e:
-        raise PlotError("snapshot does not fit its config's networks: "
-                        f"{cli.first_sentence(e)}") from None
+        raise PlotError(f"snapshot does not fit its config's networks: {cli.first_sentence(e)}") from None
     return agent
 
 
 def map_frames(env, cfg, agent, n: int):
-    """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart from the reset of the
-    run's first evaluation episode, acting with `agent`'s mean action; and their steps (counted on,
-    should an episode end first)."""
+    """n observations (pixels, masks) of `env`, MAPS_STRIDE agent steps apart from the reset of the run's first
+    evaluation episode, acting with `agent`'s mean action; and their steps (counted on across episodes)."""
     from harness import runenvs
     tasks = runenvs.eval_tasks(getattr(env.unwrapped, "tasks", None), cfg)
 
@@ -579,14 +541,14 @@ def map_frames(env, cfg, agent, n: int):
 
 
 def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
-    """The ReLU output of the encoder's last convolution, (N, 32, 35, 35), for uint8 observations,
-    caught on the way through the encoder's own forward (its normalisation, its input channels)."""
+    """The ReLU output of the encoder's last convolution, (N, 32, 35, 35), for uint8 observations, caught on the way
+    through the encoder's own forward (its normalisation, its input channels)."""
     import torch
+    from methods import baselines
     caught = []
     hook = agent.encoder.convs.register_forward_hook(lambda module, inputs, out: caught.append(out))
     try:
         with torch.no_grad():
-            from methods import baselines
             x = torch.as_tensor(pixels).float()
             if isinstance(agent, baselines.RGBMAgent):  # its masks are part of its input
                 x = baselines.with_masks(x, torch.as_tensor(masks).float())
@@ -597,9 +559,8 @@ def last_conv_maps(agent, pixels: np.ndarray, masks: np.ndarray) -> np.ndarray:
 
 
 def overlay_maps(image: np.ndarray, maps: np.ndarray, alpha: float = 0.5) -> np.ndarray:
-    """Each channel of `maps` (C, h, w) as a heat map over `image` (H, W, 3) uint8: resized to H x W
-    (bilinear), normalised to [0, 1] per channel, coloured with jet, blended: (C, H, W, 3)
-    uint8."""
+    """Each channel of `maps` (C, h, w) as a jet heat map over `image` (H, W, 3) uint8: resized to H x W (bilinear),
+    normalised to [0, 1] per channel, blended: (C, H, W, 3) uint8."""
     import torch
     import torch.nn.functional as F
     from matplotlib import colormaps
@@ -626,24 +587,21 @@ def robot_units(masks: np.ndarray, side: int) -> np.ndarray:
 
 
 def robot_share(maps: np.ndarray, robot: np.ndarray) -> np.ndarray:
-    """Per channel, the share of its activation mass (over all frames and units) on robot units,
-    maps (N, C, h, w), robot (N, h, w); NaN for a channel that never fires."""
+    """Per channel, the share of its activation mass (over all frames and units) on robot units, maps (N, C, h, w),
+    robot (N, h, w); NaN for a channel that never fires."""
     with np.errstate(invalid="ignore", divide="ignore"):
         return (maps * robot[:, None]).sum(axis=(0, 2, 3)) / maps.sum(axis=(0, 2, 3))
 
 
 def maps_figure(out: str, frames: dict, runs: list[dict], mask_fraction: float):
-    """One row per frame: the image (true mask outlined), then each run's 32 channels as a 4 x 8
-    grid, sorted by share on robot (highest first, number in the corner); below, the histogram of
-    the shares per run against the mask fraction."""
+    """One row per frame: the image (true mask outlined), then each run's 32 channels as a 4 x 8 grid, sorted by share
+    on robot (highest first, number in the corner); below, the histogram of the shares per run."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     n, (gh, gw), k = len(frames["images"]), runs[0]["grids"][0].shape[:2], len(runs)
-    fig = plt.figure(figsize=((gh + gw * k) / 100 + 1, n * (gh / 100 + 0.4) + 3.2),
-                     layout="constrained")
-    gs = fig.add_gridspec(n + 1, 1 + k, width_ratios=[gh] + [gw] * k,
-                          height_ratios=[gh] * n + [0.9 * gh])
+    fig = plt.figure(figsize=((gh + gw * k) / 100 + 1, n * (gh / 100 + 0.4) + 3.2), layout="constrained")
+    gs = fig.add_gridspec(n + 1, 1 + k, width_ratios=[gh] + [gw] * k, height_ratios=[gh] * n + [0.9 * gh])
     tile = (gh + 2) // 4  # 4 rows of tiles with 2-px gaps
     for i in range(n):
         ax = fig.add_subplot(gs[i, 0])
@@ -655,58 +613,53 @@ def maps_figure(out: str, frames: dict, runs: list[dict], mask_fraction: float):
             ax = fig.add_subplot(gs[i, 1 + j])
             ax.imshow(run["grids"][i])
             for rank, share in enumerate(run["share"][run["order"]]):
-                ax.text(rank % 8 * tile + 2, rank // 8 * tile + 2, "dead" if np.isnan(share) else
-                        f"{share:.2f}", color="white", fontsize=5, va="top")
+                ax.text(rank % 8 * tile + 2, rank // 8 * tile + 2, "dead" if np.isnan(share) else f"{share:.2f}",
+                        color="white", fontsize=5, va="top")
             ax.axis("off")
             ax.set_title(run["label"] if i == 0 else "", fontsize=9)
     ax = fig.add_subplot(gs[n, 1:])
     for j, run in enumerate(runs):
-        ax.hist(run["share"][~np.isnan(run["share"])], bins=np.linspace(0, 1, 41), histtype="step",
-                lw=1.5, color=f"C{j}", label=f"{run['label']}: {run['robot']} robot, "
-                                             f"{run['environment']} environment channels")
+        ax.hist(run["share"][~np.isnan(run["share"])], bins=np.linspace(0, 1, 41), histtype="step", lw=1.5,
+                color=f"C{j}", label=f"{run['label']}: {run['robot']} robot, {run['environment']} environment "
+                                     "channels")
     ax.axvline(mask_fraction, color="k", lw=1, label=f"mask fraction {mask_fraction:.3f}")
     for factor in (ROBOT, ENVIRONMENT):
         ax.axvline(factor * mask_fraction, color="k", lw=0.8, ls="--")
-    ax.set(xlabel="share of a channel's activation on the robot (dashed: 0.5x and 2x the mask "
-                  "fraction)", ylabel="channels")
+    ax.set(xlabel="share of a channel's activation on the robot (dashed: 0.5x and 2x the mask fraction)",
+           ylabel="channels")
     ax.legend(fontsize=7)
-    fig.suptitle("Last-convolution activation maps (ReLU, 32 x 35 x 35 resized to 84 x 84), "
-                 "channels sorted by share on robot", fontsize=10)
+    fig.suptitle("Last-convolution activation maps (ReLU, 32 x 35 x 35 resized to 84 x 84), channels sorted by "
+                 "share on robot", fontsize=10)
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     fig.savefig(out, dpi=100)
     plt.close(fig)
 
 
 def maps_table(runs: list[dict], mask_fraction: float) -> str:
-    lines = [f"mask fraction (robot units of the 35x35 map, over the frames): {mask_fraction:.4f}",
-             "", f"| run | method | trained frames | robot channels (share > {ROBOT:g}x) | "
-             f"environment channels (share < {ENVIRONMENT:g}x) | dead | median share |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [f"mask fraction (robot units of the 35x35 map, over the frames): {mask_fraction:.4f}", "",
+             f"| run | method | trained frames | robot channels (share > {ROBOT:g}x) | environment channels (share "
+             f"< {ENVIRONMENT:g}x) | dead | median share |", "|---|---|---|---|---|---|---|"]
     for r in runs:
         live = r["share"][~np.isnan(r["share"])]
-        lines.append(f"| {r['dir']} | {r['method']} | {r['frame']} | {r['robot']} | "
-                     f"{r['environment']} | {r['dead']} | "
-                     f"{f'{np.median(live):.4f}' if len(live) else '-'} |")
+        lines.append(f"| {r['dir']} | {r['method']} | {r['frame']} | {r['robot']} | {r['environment']} | "
+                     f"{r['dead']} | {f'{np.median(live):.4f}' if len(live) else '-'} |")
     return "\n".join(lines)
 
 
 def map_runs(run_dirs: list[str], n_frames: int) -> tuple[list[dict], float, dict]:
-    """Each run's maps on the same frames (the first run's eval env with clean masks, rendered for
-    every method, and its policy), its channels' shares on the robot and their order; the mask
-    fraction; the frames."""
+    """Each run's maps on the same frames (the first run's eval env with clean masks, rendered for every method, and
+    its policy), its channels' shares on the robot and their order; the mask fraction; the frames."""
     import torch
     from harness import runenvs
     loaded = [(os.path.normpath(d), *load_snapshot_run(d)) for d in run_dirs]
     first = loaded[0][1]
     for d, cfg, _ in loaded[1:]:
         if (cfg.env, cfg.frame_stack) != (first.env, first.frame_stack):
-            raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), {loaded[0][0]} "
-                            f"on {first.env} (frame stack {first.frame_stack}): maps compare runs "
-                            "on the same frames")
+            raise PlotError(f"{d} is on {cfg.env} (frame stack {cfg.frame_stack}), {loaded[0][0]} on {first.env} "
+                            f"(frame stack {first.frame_stack}): maps compare runs on the same frames")
     torch.set_num_threads(cli.default_threads())
     try:
-        env = runenvs.make_run_env(first, "eval", render_mask=True, mask_noise=0.0,
-                                   mask_approx=False)
+        env = runenvs.make_run_env(first, "eval", render_mask=True, mask_noise=0.0, mask_approx=False)
     except cli.ConfigError as e:
         raise PlotError(str(e)) from None
     agents = [trained_agent(cfg, state, env.action_space.shape[0]) for _, cfg, state in loaded]
@@ -724,23 +677,26 @@ def map_runs(run_dirs: list[str], n_frames: int) -> tuple[list[dict], float, dic
                      "label": f"{cfg.method} seed {cfg.seed}, {short_frames(frame)} frames",
                      "robot": int(np.sum(share > ROBOT * frac)), "dead": int(np.isnan(share).sum()),
                      "environment": int(np.sum(share < ENVIRONMENT * frac)),
-                     "grids": [channel_grid(overlay_maps(img, m)[order])
-                               for img, m in zip(frames["images"], maps)]})
+                     "grids": [channel_grid(overlay_maps(img, m)[order]) for img, m in zip(frames["images"], maps)]})
     return runs, frac, frames
 
 
+def refuse_overwrite(args) -> None:
+    if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
+        raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
+
+
 def maps_main(argv) -> int:
-    parser = cli.OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's "
-                               "last convolution for runs on the same frames (the paper's section "
-                               "5), and each channel's share of activation on the robot.")
+    parser = cli.OneLineParser(prog="plot.py maps", description="Activation maps of the encoder's last convolution "
+                               "for runs on the same frames (the paper's section 5), and each channel's share of "
+                               "activation on the robot.")
     parser.add_argument("runs", nargs="+", help="run directories (snapshot.pt), on one env")
     parser.add_argument("--out", default="runs/maps.png", help="PNG (default runs/maps.png)")
     parser.add_argument("--frames", type=int, default=2, help=f"{MAPS_STRIDE} agent steps apart")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     try:
         args = parser.parse_args(argv)
-        if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
-            raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
+        refuse_overwrite(args)
         if args.frames < 1:
             raise PlotError(f"--frames must be >= 1, got {args.frames}")
         runs, frac, frames = map_runs(args.runs, args.frames)
@@ -758,8 +714,8 @@ def build_parser():
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="+", help="run directories, folders of runs, or globs")
     p.add_argument("--out", default="runs/curves.png", help="PNG (default runs/curves.png)")
-    p.add_argument("--metric", default="return", help="return | success | any column of the CSV "
-                   "read (e.g. --csv train --metric dormant_ratio)")
+    p.add_argument("--metric", default="return", help="return | success | any column of the CSV read (e.g. "
+                   "--csv train --metric dormant_ratio)")
     p.add_argument("--csv", default="eval", choices=("eval", "train"), help="which log to read")
     p.add_argument("--group", default="method", help="config keys, comma separated: method,env")
     p.add_argument("--title", default=None)
@@ -768,18 +724,16 @@ def build_parser():
     p.add_argument("--baseline", default=None, metavar="VALUE[:LABEL]",
                    help="a dashed horizontal line, e.g. 1.6:random (benchmarks/random_policy.py)")
     p.add_argument("--reference", action="append", default=[], metavar="CSV[:LABEL]",
-                   help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and "
-                        "min-max band over its seeds, on the panels of its task; repeatable")
+                   help="a published curve (DrQ-v2's curves/dmc_<task>.csv format): mean and min-max band over "
+                        "its seeds, on the panels of its task; repeatable")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     return p
 
 
 def checked_args(args) -> tuple[list, tuple[float, str] | None, list[str]]:
-    """(--reference curves, --baseline, --group keys), read and checked before any run is."""
-    references = [(path, load_reference(path, label))
-                  for path, label in map(parse_reference, args.reference)]
-    if os.path.exists(args.out) and not args.force:  # checked first: don't make the user wait
-        raise PlotError(f"{args.out} exists; refusing to overwrite it (use --force)")
+    """(--reference curves, --baseline (value, label) or None, --group keys), checked before any run is read."""
+    references = [(path, load_reference(path, label)) for path, label in map(parse_reference, args.reference)]
+    refuse_overwrite(args)
     keys = [k.strip() for k in args.group.split(",") if k.strip()]
     if not keys:
         raise PlotError("--group needs at least one config key, e.g. method")
@@ -794,29 +748,26 @@ def parse_baseline(spec: str | None) -> tuple[float, str] | None:
     try:
         return None if spec is None else (float(value), label or "baseline")
     except ValueError:
-        raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {spec!r}") \
-            from None
+        raise PlotError(f"--baseline must be VALUE[:LABEL], e.g. 1.6:random; got {spec!r}") from None
 
 
 def load_runs(args) -> list[dict]:
-    """The runs the paths name (with --per-task one per task, and their means); a run without the
-    CSV yet is skipped with one line."""
+    """The runs the paths name (with --per-task one per task, and their means); a run without the CSV yet is skipped
+    with one line."""
     runs, found = [], find_runs(args.paths)
     for d in found:
         try:
-            runs += load_task_runs(d, args.metric) if args.per_task else [
-                load_run(d, args.csv, args.metric)]
+            runs += load_task_runs(d, args.metric) if args.per_task else [load_run(d, args.csv, args.metric)]
         except NoLogYet as e:  # one run stopped early must not hide all the others
             print(f"plot.py: skipping {d}: {e}", file=sys.stderr)
     if not runs:
-        raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written "
-                        f"{args.csv}.csv yet")
+        raise PlotError(f"nothing to draw: none of the {len(found)} runs found has written {args.csv}.csv yet")
     return runs + (task_mean_runs(runs) if args.per_task else [])
 
 
 def panel_runs(runs: list[dict], keys: list[str]) -> dict[str, list[dict]]:
-    """{panel: runs}: one panel per env, unless env is a grouping key (or there is one); with
-    --per-task one per task (and env)."""
+    """{panel: runs}: one panel per env, unless env is a grouping key (or there is one); with --per-task one per task
+    (and env)."""
     envs, keyed = sorted({env_of(r) for r in runs}), {}
     by_env = len(envs) > 1 and "env" not in keys
     for r in sorted(runs, key=env_of):  # stable: tasks keep their column order
@@ -839,17 +790,14 @@ def panel_lines(panel: str, members: list[dict], keys: list[str], interpolate: b
 
 
 def warn(where: str, label: str, group: list[dict]) -> None:
-    """A line's repeated seeds, and its runs that end at different frames (each is drawn to its own
-    end), each a line on stderr."""
+    """A line's repeated seeds, and its runs that end at different frames, each a line on stderr."""
     seeds, ends = [r["config"].get("seed") for r in group], [int(r["frames"][-1]) for r in group]
     if len(set(seeds)) < len(seeds):
         print(f"plot.py: warning: {label}: repeated seeds {seeds}", file=sys.stderr)
     if len(set(ends)) > 1:
-        counts = ", ".join(f"{e}" + (f" (x{ends.count(e)})" if ends.count(e) > 1 else "")
-                           for e in sorted(set(ends)))
-        print(f"plot.py: warning: {where}: runs end at frames {counts}; each is drawn to its own "
-              "end, the mean and CI at a frame are over the runs that reached it (dashed where not "
-              "all did)", file=sys.stderr)
+        counts = ", ".join(f"{e}" + (f" (x{ends.count(e)})" if ends.count(e) > 1 else "") for e in sorted(set(ends)))
+        print(f"plot.py: warning: {where}: runs end at frames {counts}; each is drawn to its own end, the mean and "
+              "CI at a frame are over the runs that reached it (dashed where not all did)", file=sys.stderr)
 
 
 def main(argv=None) -> int:
@@ -860,8 +808,7 @@ def main(argv=None) -> int:
         args = build_parser().parse_args(argv)
         references, baseline, keys = checked_args(args)
         keyed = panel_runs(load_runs(args), keys)
-        panels = {panel: panel_lines(panel, members, keys, args.csv == "train")
-                  for panel, members in keyed.items()}
+        panels = {panel: panel_lines(panel, members, keys, args.csv == "train") for panel, members in keyed.items()}
         envs = {panel: {env_of(r) for r in members} for panel, members in keyed.items()}
         ylabel = f"{args.csv} {'success rate' if args.metric == 'success' else args.metric}"
         plot(panels, args.out, ylabel, args.title or default_title(ylabel, envs), baseline,

@@ -1,18 +1,17 @@
-"""sear.py's command line: the run settings (RunConfig), flags generated from the dataclasses (the
-algorithm's Config is in sear.py, passed in), the recipes applied (harness/recipes.py), the checks
-that turn bad input into one line on stderr (misspelled flags, values, flags that do nothing, the
-devices), the saved config of --resume, --evaluate and --init-from, and sear.py's exit codes (main).
+"""sear.py's command line: the run settings (RunConfig), flags generated from the dataclasses (the algorithm's Config
+is passed in), the recipes applied (harness/recipes.py), the checks that turn bad input into one line on stderr, the
+saved config of --resume, --evaluate and --init-from, and sear.py's exit codes (main).
 
-Every setting is declared once, as a dataclass field: `arg(default, doc, choices, **keys)`, the keys
-below (META). The parser, --help and --help-all, the range checks and where each setting acts (its
-refusals, --drop-inapplicable, what plot.py names a curve by) are read from there.
-
-Loads no numpy or torch at import: sweep.py and plot.py read flags and configs through it without them.
+Every setting is declared once, as a dataclass field: `arg(default, doc, choices, **keys)`, the keys below (META).
+The parser, --help and --help-all, the range checks and where each setting acts (its refusals, --drop-inapplicable,
+what plot.py names a curve by) are read from there. Loads no numpy or torch at import: sweep.py and plot.py read
+flags and configs through it without them.
 """
 from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import difflib
 import functools
@@ -24,19 +23,16 @@ import sys
 from dataclasses import dataclass, field
 
 # What the rest of the project calls cli.X lives here or in these (which import nothing of cli):
-from harness.files import (LOCK_FILE, ConfigError, StorageError, check_run_config,  # noqa: F401
-                           check_run_dir, check_run_root, first_sentence, flag, inherit_from_source,
-                           load_snapshot, lock_holder, lock_owner, storing, torch_save,
-                           write_atomically)
-from harness.process import (TERM, Terminated, TermSignal, configure_allocator,  # noqa: F401
-                             cxx_compiler, default_threads, set_tf32, start_warnings, stop_cause,
-                             torch_threads, usable_cores)
+from harness.files import (LOCK_FILE, ConfigError, StorageError, check_run_config, check_run_root,  # noqa: F401
+                           first_sentence, flag, inherit_from_source, load_snapshot, lock_holder, lock_owner, storing,
+                           torch_save, write_atomically)
+from harness.process import (TERM, Terminated, TermSignal, configure_allocator, cxx_compiler,  # noqa: F401
+                             default_threads, set_tf32, start_warnings, stop_cause, torch_threads)
 from harness.recipes import DRM_MAX_PERTURB, DRM_TASKS, RECIPES, TASK_DEFAULTS  # noqa: F401
 
 
 def arg(default, doc, choices=None, **keys):
-    """A config field: its default, its one-line doc (--help), the values it takes if a fixed set,
-    and what else the command line knows of it (META)."""
+    """A config field: its default, its one-line doc (--help), the values it takes if a fixed set, and META keys."""
     return field(default=default, metadata={"doc": doc, "choices": choices, **keys})
 
 
@@ -50,95 +46,80 @@ def arg(default, doc, choices=None, **keys):
 #   when="drm"              the runs it acts in: a setting that is set (--drm), or of CONDITIONS
 #   resume_may_change=True  --resume may give it another value (evaluate_may_set: --evaluate may)
 #   saved=False             a setting of this command only, never in config.json or a snapshot
-# A field without acts, envs and when acts in every run. Those and the two *_may_* keys are
-# literals: where a setting acts is asked without the classes (plot.py, sweep.py: no torch), and
-# `declared` reads them from the source.
-META = ("group", "metavar", "low", "above", "high", "why", "acts", "envs", "when",
-        "resume_may_change", "evaluate_may_set", "saved")
+# A field without acts, envs and when acts in every run. Those and the two *_may_* keys are literals: where a setting
+# acts is asked without the classes (plot.py, sweep.py: no torch), and `declared` reads them from the source.
+META = ("group", "metavar", "low", "above", "high", "why", "acts", "envs", "when", "resume_may_change",
+        "evaluate_may_set", "saved")
 STATIC = ("acts", "envs", "when", "resume_may_change", "evaluate_may_set")
-# The --help groups, in order.
-GROUPS = ("what to run", "the method", "robot masks", "the suites", "budgets", "the process")
+GROUPS = ("what to run", "the method", "robot masks", "the suites", "budgets", "the process")  # --help's, in order
 
 # Transfer (--init-from): which networks of another run's agent a new run starts from.
 INIT_PARTS = {"encoder": ("encoder",), "encoder+decoders": ("encoder", "aux"),
               "all": ("encoder", "aux", "actor", "critic")}
 _PROCESS = "the process"
+_AUTO = ("auto", "on", "off")
 
 
 @dataclass
 class RunConfig:
-    """How this process runs the experiment (sear.Config says what the experiment is): devices, files,
-    logs, snapshots, transfer. Saved with the Config in config.json and snapshot.pt, all but the
-    fields marked saved=False (--evaluate: a command, not a setting of the run)."""
-    device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N",
-                      metavar="DEVICE", group=_PROCESS, resume_may_change=True,
-                      evaluate_may_set=True)
-    compile: str = arg("auto", "auto (on with CUDA) | on | off: the update through torch.compile "
-                               "(harness/speed.py); equal to the plain update within rounding; its "
-                               "first update compiles (minutes)", ("auto", "on", "off"),
-                       resume_may_change=True)
-    cuda_graph: str = arg("auto", "auto (on with CUDA) | on | off: the update captured once as a "
-                                  "CUDA graph and replayed (harness/speed.py)",
-                          ("auto", "on", "off"), resume_may_change=True)
-    batch_seeds: str = arg("auto", "auto (on with CUDA) | on | off: with --seeds, every seed's "
-                                   "update as one batched update (torch.func.vmap); off: one after "
-                                   "another", ("auto", "on", "off"), resume_may_change=True)
-    tf32: bool = arg(False, "CUDA: TF32 in float32 convolutions and matmuls (Ampere and newer: "
-                            "faster, ~3 fewer significant digits); off: the reference arithmetic "
-                            "(DrQ-v2's curves ran on V100s, which have none)", when="cuda",
-                     resume_may_change=True)
-    replay_device: str = arg("auto", "where the replay ring lives: auto (the run's GPU when it "
-                                     "fits there, else the host) | cpu | the run's device",
-                             metavar="DEVICE", resume_may_change=True)
-    prefetch: str = arg("auto", "auto (on with CUDA and a replay on the host) | on | off: sample "
-                                "and copy the next batch in a background thread while the current "
-                                "update runs", ("auto", "on", "off"), group=_PROCESS,
+    """How this process runs the experiment (sear.Config says what the experiment is): devices, files, logs, snapshots,
+    transfer. Saved in config.json and snapshot.pt, all but the fields marked saved=False."""
+    device: str = arg("auto", "auto (cuda when available, else cpu) | cpu | cuda | cuda:N", metavar="DEVICE",
+                      group=_PROCESS, resume_may_change=True, evaluate_may_set=True)
+    compile: str = arg("auto", "auto (on with CUDA) | on | off: the update through torch.compile (harness/speed.py); "
+                               "equal to the plain update within rounding; its first update compiles (minutes)",
+                       _AUTO, resume_may_change=True)
+    cuda_graph: str = arg("auto", "auto (on with CUDA) | on | off: the update captured once as a CUDA graph and "
+                                  "replayed (harness/speed.py)", _AUTO, resume_may_change=True)
+    batch_seeds: str = arg("auto", "auto (on with CUDA) | on | off: with --seeds, every seed's update as one batched "
+                                   "update (torch.func.vmap); off: one after another", _AUTO, resume_may_change=True)
+    tf32: bool = arg(False, "CUDA: TF32 in float32 convolutions and matmuls (Ampere and newer: faster, ~3 fewer "
+                            "significant digits); off: the reference arithmetic (DrQ-v2's curves ran on V100s, which "
+                            "have none)", when="cuda", resume_may_change=True)
+    replay_device: str = arg("auto", "where the replay ring lives: auto (the run's GPU when it fits there, else the "
+                                     "host) | cpu | the run's device", metavar="DEVICE", resume_may_change=True)
+    prefetch: str = arg("auto", "auto (on with CUDA and a replay on the host) | on | off: sample and copy the next "
+                                "batch in a background thread while the current update runs", _AUTO, group=_PROCESS,
                         resume_may_change=True)
-    threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process "
-                          "may use. Several runs on one machine: give each cores / runs", low=0,
-                       group=_PROCESS, resume_may_change=True, evaluate_may_set=True)
+    threads: int = arg(0, "torch CPU threads; 0 = $OMP_NUM_THREADS, else every core this process may use. Several "
+                          "runs on one machine: give each cores / runs", low=0, group=_PROCESS,
+                       resume_may_change=True, evaluate_may_set=True)
     run_root: str = arg("runs", "folder that holds run directories", metavar="DIR", group=_PROCESS)
-    resume: str = arg("", "run directory to continue from its last snapshot", metavar="RUN_DIR",
-                      group=_PROCESS, resume_may_change=True)
-    evaluate: str = arg("", "score this run directory's snapshot on its eval env, no training: "
-                            "mean return (and success) over --eval-episodes with confidence "
-                            "intervals; writes nothing, but with --save-video a new "
-                            "videos/evaluate_<frame>.mp4", metavar="RUN_DIR", group=_PROCESS,
+    resume: str = arg("", "run directory to continue from its last snapshot", metavar="RUN_DIR", group=_PROCESS,
+                      resume_may_change=True)
+    evaluate: str = arg("", "score this run directory's snapshot on its eval env, no training: mean return (and "
+                            "success) over --eval-episodes with confidence intervals; writes nothing, but with "
+                            "--save-video a new videos/evaluate_<frame>.mp4", metavar="RUN_DIR", group=_PROCESS,
                         saved=False, evaluate_may_set=True)
-    recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their "
-                               "released code where the two differ: harness/recipes.py, "
-                               "docs/recipes.md); explicit flags win", ("paper", "authors"),
-                      group="what to run")
-    seeds: str = arg("", "several seeds in one process, e.g. 1-16 or 1,3,5: seed k writes the run "
-                         "directory --seed k writes, inside one group folder (docs/speed.md)",
-                     metavar="SEEDS", group="what to run", saved=False)
-    save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues "
-                                   "exactly", group=_PROCESS, resume_may_change=True)
-    save_video: bool = arg(False, "write each evaluation's first episode to "
-                                  "videos/eval_<frame>.mp4: camera | true mask | predicted mask | "
-                                  "reconstruction (the panels the method has)", group=_PROCESS,
+    recipe: str = arg("paper", "paper (the paper's hyper-parameter table) | authors (their released code where the "
+                               "two differ: harness/recipes.py, docs/recipes.md); explicit flags win",
+                      ("paper", "authors"), group="what to run")
+    seeds: str = arg("", "several seeds in one process, e.g. 1-16 or 1,3,5: seed k writes the run directory --seed k "
+                         "writes, inside one group folder (docs/speed.md)", metavar="SEEDS", group="what to run",
+                     saved=False)
+    save_buffer: bool = arg(False, "also snapshot the replay buffer: --resume then continues exactly", group=_PROCESS,
+                            resume_may_change=True)
+    save_video: bool = arg(False, "write each evaluation's first episode to videos/eval_<frame>.mp4: camera | true "
+                                  "mask | predicted mask | reconstruction (the panels the method has)", group=_PROCESS,
                            resume_may_change=True, evaluate_may_set=True)
-    init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. "
-                             "pre-trained on metaworld-mt10); method and network sizes follow that "
-                             "run unless given", metavar="RUN_DIR", group=_PROCESS)
-    init_parts: str = arg("all", "with --init-from, what to copy: encoder | encoder+decoders (the "
-                                 "method's auxiliary networks too) | all (also actor and critic: "
-                                 "the authors' default, just_encoder_decoders false); the rest and "
-                                 "the optimisers start fresh", tuple(INIT_PARTS), when="init_from",
-                          group=_PROCESS)
+    init_from: str = arg("", "transfer: start from the snapshot.pt of this run directory (e.g. pre-trained on "
+                             "metaworld-mt10); method and network sizes follow that run unless given",
+                         metavar="RUN_DIR", group=_PROCESS)
+    init_parts: str = arg("all", "with --init-from, what to copy: encoder | encoder+decoders (the method's auxiliary "
+                                 "networks too) | all (also actor and critic: the authors' default, "
+                                 "just_encoder_decoders false); the rest and the optimisers start fresh",
+                          tuple(INIT_PARTS), when="init_from", group=_PROCESS)
     log_every: float = arg(10.0, "seconds between progress lines", resume_may_change=True)
-    snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at "
-                                        "the next episode end (0 = after every episode)", low=0,
-                                  group=_PROCESS, resume_may_change=True)
-    drop_inapplicable: bool = arg(False, "drop the flags given where they do nothing (their 'only "
-                                         "for') with one line, instead of refusing them: sweep.py "
-                                         "passes one set of flags to every method of a grid",
-                                  saved=False)
+    snapshot_minutes: float = arg(10.0, "minutes of wall time between snapshots, each written at the next episode "
+                                        "end (0 = after every episode)", low=0, group=_PROCESS,
+                                  resume_may_change=True)
+    drop_inapplicable: bool = arg(False, "drop the flags given where they do nothing (their 'only for') with one "
+                                         "line, instead of refusing them: sweep.py passes one set of flags to every "
+                                         "method of a grid", saved=False)
 
 
 class NonFinite(Exception):
-    """A loss, Q or action that is no longer a finite number: the run diverged. It stops (exit 1) in
-    one line that says where and what stands (experiment.RunDir adds the frame and the snapshot)."""
+    """A loss, Q or action that is no longer a finite number: the run diverged; it stops in one line (exit 1)."""
 
 
 class Interrupted(Exception):
@@ -162,8 +143,7 @@ DRM_SUFFIX = "+drm"  # sweep.py's and the tables' name of a method run with --dr
 
 
 def method_label(config) -> str:
-    """A run's method as run directories, sweep.py and plot tables name it: 'drq', or 'drq+drm' with
-    --drm. `config` is a Config or a saved config dict (one without 'drm' predates the flag)."""
+    """'drq', or 'drq+drm' with --drm, of a Config or a saved config dict (one without 'drm' predates the flag)."""
     get = config.get if isinstance(config, dict) else lambda k: getattr(config, k, None)
     return f"{get('method')}{DRM_SUFFIX if get('drm') else ''}"
 
@@ -174,8 +154,8 @@ def split_method_label(label: str) -> tuple[str, tuple[str, ...]]:
 
 
 def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
-    """Set the per-task rows (TASK_DEFAULTS), then the recipe's values on `cfg`, except fields the user
-    gave explicitly and fields that do nothing in this run (acts). Returns what changed."""
+    """Set the per-task rows (TASK_DEFAULTS), then the recipe's, except fields given explicitly and fields that do
+    nothing in this run. Returns what changed."""
     changed = {}  # a recipe row may override a per-task row: report the value that stands
     for name, applies, value, source, *_ in (*TASK_DEFAULTS, *RECIPES.get(recipe, ())):
         if name in explicit or not applies(cfg) or not acts(name, vars(cfg)):  # never a value that does nothing
@@ -185,9 +165,7 @@ def apply_recipe(cfg, recipe: str, explicit: set) -> list[str]:
     return list(changed.values())
 
 
-# ------------------------------------------------------------------------------------------------
-# Flags and checks
-# ------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------ flags
 class OneLineParser(argparse.ArgumentParser):
     def error(self, message):  # the caller prints it as one line, as every other bad input
         raise ConfigError(message)
@@ -195,10 +173,8 @@ class OneLineParser(argparse.ArgumentParser):
 
 def whole_number(text: str) -> int:
     """An int flag's value: an integer, or a float that is one (--frames 1e6, 2.5e5); else one line."""
-    try:
+    with contextlib.suppress(ValueError):
         return int(text)
-    except ValueError:
-        pass
     try:
         value = float(text)
     except ValueError:
@@ -209,8 +185,7 @@ def whole_number(text: str) -> int:
 
 
 def field_groups(Config) -> list:
-    """[(title, defaults, fields)] of the flags: Config's own fields, those of each dataclass it inherits
-    (sear.Config, drm.DrMConfig, ...), then RunConfig's."""
+    """[(title, defaults, fields)] of the flags: each dataclass Config is made of, then RunConfig."""
     groups = []
     for cls in (c for c in Config.__mro__ if dataclasses.is_dataclass(c)):
         own = cls.__dict__.get("__annotations__", {})
@@ -259,8 +234,8 @@ class HelpAll(argparse.Action):
 
 
 def help_sections(Config, full: bool) -> list:
-    """[(title, field names)] of --help (the fields of each of GROUPS, then the rest untitled:
-    parsed, not shown) or, full, of --help-all (every field by its dataclass)."""
+    """[(title, field names)] of --help (GROUPS, then the rest untitled: parsed, not shown) or, full, of --help-all
+    (every field by its dataclass)."""
     if full:
         return [(title, [f.name for f in group]) for title, _, group in field_groups(Config)]
     sections = {title: [] for title in (*GROUPS, None)}
@@ -271,8 +246,7 @@ def help_sections(Config, full: bool) -> list:
 
 
 def build_parser(Config, methods: dict, full=False) -> OneLineParser:
-    """One flag per field of Config and RunConfig. --help shows the flags of GROUPS, --help-all
-    (full=True) every flag by its dataclass; the others parse all the same."""
+    """One flag per field of Config and RunConfig, shown by --help (GROUPS) or --help-all (full=True)."""
     fields = {f.name: (f, defaults) for _, defaults, group in field_groups(Config) for f in group}
     epilog = f"The flags that matter; all {len(fields)}: python sear.py --help-all. docs/flags.md has both."
     parser = OneLineParser(prog="sear.py", usage="%(prog)s [--env ENV] [--method METHOD] [--FLAG VALUE ...] | "
@@ -290,16 +264,13 @@ def build_parser(Config, methods: dict, full=False) -> OneLineParser:
 
 
 def negative_numbers_as_values(argv: list[str]) -> list[str]:
-    """'--lr -1e-4' as '--lr=-1e-4': argparse's rule for negative numbers knows -1 and -1.5 but not
-    -1e-4, takes it for a flag and says 'expected one argument' instead of what is wrong with it."""
+    """'--lr -1e-4' as '--lr=-1e-4': argparse's rule for negative numbers knows -1 and -1.5 but not -1e-4, takes it for
+    a flag and says 'expected one argument' instead of what is wrong with it."""
     joined = []
     for token in argv:
         if joined and joined[-1].startswith("--") and "=" not in joined[-1] and token.startswith("-"):
-            try:
+            with contextlib.suppress(ValueError):
                 float(token)
-            except ValueError:
-                pass
-            else:
                 joined[-1] += "=" + token
                 continue
         joined.append(token)
@@ -308,12 +279,9 @@ def negative_numbers_as_values(argv: list[str]) -> list[str]:
 
 def flag_names(Config) -> set[str]:
     """Every flag sear.py's parser has: one per field, plus --no-X for booleans, and --help-all."""
-    names = {"--help-all"}
-    for f in (*dataclasses.fields(Config), *dataclasses.fields(RunConfig)):
-        names.add(flag(f.name))
-        if f.type in ("bool", bool):
-            names.add("--no-" + flag(f.name)[2:])
-    return names
+    fields = (*dataclasses.fields(Config), *dataclasses.fields(RunConfig))
+    return {"--help-all", *(flag(f.name) for f in fields),
+            *("--no-" + flag(f.name)[2:] for f in fields if f.type in ("bool", bool))}
 
 
 def no_such_flag(name, known: set[str]) -> str:
@@ -328,19 +296,17 @@ def unknown_arguments(extras: list[str], known: set[str]) -> str:
     return no_such_flag(flags[0], known) if flags else f"unrecognized arguments: {' '.join(extras)}"
 
 
-# ------------------------------------------------------------------------------------------------
-# Where each setting acts: a flag given where it does nothing is refused (or, for sweep.py, dropped)
-# ------------------------------------------------------------------------------------------------
-# The methods by what they read, named here (plot.py reads config.json without torch); tests check them
-# against sear.METHODS (uses_mask, encoder): a new method that uses the mask or the pooled encoder is added here.
+# ------------------------------------------------------------------------------------------------ where settings act
+# A flag given where it does nothing is refused (or, for sweep.py, dropped). The methods by what they read are named
+# here (plot.py reads config.json without torch); tests check them against sear.METHODS (uses_mask, encoder).
 MASK_METHODS = ("sear", "sear-nosplit", "rgbm", "dear")                   # Method.uses_mask
 POOLED_METHODS = ("sear", "ae", "mae", "curl", "sear-nosplit", "dear", "ef")  # Method.encoder == "pooled"
 TASK_SETS = ("mt3", "mt10", "mt50")  # metaworld-<set>; envs.py's _METAWORLD_SETS
 
 
 def suite_of(env: str) -> str:
-    """dmc | distracting | metaworld | task-set | kitchen | adroit: the suite of an env name as envs.py names
-    them, read from the name alone (no MuJoCo; tests check it against envs.py's parser)."""
+    """dmc | distracting | metaworld | task-set | kitchen | adroit: an env name's suite as envs.py names them, read
+    from the name alone (no MuJoCo; tests check it against envs.py's parser)."""
     prefix, _, rest = env.partition("-")
     if env.endswith("-distracting"):
         return "distracting"
@@ -357,33 +323,27 @@ def listing(names) -> str:
 
 # The named scopes a field's acts=, envs= and when= may use: (test, what a setting there is for).
 METHOD_SETS = {"mask": (MASK_METHODS, "methods that use the robot mask (--method {})"),
-               "pooled": (POOLED_METHODS, "SEAR's pooled encoder (--method {}; drq and rgbm "
-                                          "flatten the feature map)")}
+               "pooled": (POOLED_METHODS, "SEAR's pooled encoder (--method {}; drq and rgbm flatten the feature map)")}
 ENV_SETS = {
-    "distracting": (lambda env: suite_of(env) == "distracting",
-                    "Distracting Control (*-distracting envs)"),
+    "distracting": (lambda env: suite_of(env) == "distracting", "Distracting Control (*-distracting envs)"),
     "kitchen": (lambda env: suite_of(env) == "kitchen", "Kitchen (kitchen-* envs)"),
-    "task sets": (lambda env: suite_of(env) == "task-set",
-                  "the task sets (metaworld-mt3, -mt10, -mt50)"),
+    "task sets": (lambda env: suite_of(env) == "task-set", "the task sets (metaworld-mt3, -mt10, -mt50)"),
     "manipulation": (lambda env: suite_of(env) in ("metaworld", "task-set", "kitchen", "adroit"),
-                     "the manipulation suites (metaworld-*, kitchen-*, adroit-*; dm_control "
-                     "renders masks at 84)"),
+                     "the manipulation suites (metaworld-*, kitchen-*, adroit-*; dm_control renders masks at 84)"),
     "cartpole": (lambda env: env.startswith("cartpole-"),  # dm_control's, plain or distracting
                  "cartpole (cartpole-* and cartpole-*-distracting envs)"),
 }
 CONDITIONS = {  # c: a run's settings as config.json holds them (an old run's may lack later ones)
     "learned masks": (lambda c: c.get("mask_source", "sim") != "sim", "--mask-source learned:PATH"),
     "episodes not per task": (
-        lambda c: not (c.get("eval_episodes_per_task")
-                       and suite_of(c.get("env", "")) == "task-set"),
-        "runs other than a task set given --eval-episodes-per-task (which then sets every task's "
-        "episodes)"),
+        lambda c: not (c.get("eval_episodes_per_task") and suite_of(c.get("env", "")) == "task-set"),
+        "runs other than a task set given --eval-episodes-per-task (which then sets every task's episodes)"),
     "cuda": (lambda c: c.get("device", "auto") != "cpu",  # torch_setup refuses auto without CUDA
              "CUDA devices (--device cuda, cuda:N, or auto on a machine with CUDA)"),
 }
 # The files of the classes train.Config is made of (RunConfig is here): `declared` reads them.
-CONFIG_SOURCES = ("train.py", "sear.py", "methods/baselines.py", "methods/foresight.py",
-                  "methods/drm.py", "harness/experiment.py")
+CONFIG_SOURCES = ("train.py", "sear.py", "methods/baselines.py", "methods/foresight.py", "methods/drm.py",
+                  "harness/experiment.py")
 
 
 def _source_keys(path: str) -> dict[str, dict]:
@@ -392,18 +352,15 @@ def _source_keys(path: str) -> dict[str, dict]:
         tree = ast.parse(f.read(), path)
     fields = (n for cls in tree.body if isinstance(cls, ast.ClassDef) for n in cls.body
               if isinstance(n, ast.AnnAssign) and isinstance(n.value, ast.Call))
-    return {n.target.id: {k.arg: ast.literal_eval(k.value) for k in n.value.keywords
-                          if k.arg in STATIC}
+    return {n.target.id: {k.arg: ast.literal_eval(k.value) for k in n.value.keywords if k.arg in STATIC}
             for n in fields if getattr(n.value.func, "id", None) == "arg"}
 
 
 @functools.cache
 def declared() -> dict[str, dict]:
-    """{setting: its STATIC keys} of every field: RunConfig's, and those of the classes in
-    CONFIG_SOURCES, read from their source (ast.literal_eval): the classes import torch, and plot.py
-    and sweep.py ask where a setting acts without it (tests check the two readings agree)."""
-    keys = {f.name: {k: f.metadata[k] for k in STATIC if k in f.metadata}
-            for f in dataclasses.fields(RunConfig)}
+    """{setting: its STATIC keys} of RunConfig's fields and, read from their source, those of CONFIG_SOURCES: the
+    classes import torch, and plot.py and sweep.py ask where a setting acts without it (tests check both agree)."""
+    keys = {f.name: {k: f.metadata[k] for k in STATIC if k in f.metadata} for f in dataclasses.fields(RunConfig)}
     for path in CONFIG_SOURCES:
         keys.update(_source_keys(path))
     return keys
@@ -418,19 +375,14 @@ def _methods_scope(acts, alone: bool) -> tuple:
     return lambda c: c.get("method", "sear") in names, text
 
 
-def _condition(when: str) -> tuple:
-    if when in CONDITIONS:
-        return CONDITIONS[when]
-    return lambda c: bool(c.get(when)), f"runs with {flag(when)}"
-
-
 @functools.cache
 def scope(name: str) -> tuple | None:
-    """(acts(settings), what the setting is for) of one that acts only in some runs, from its keys
-    when=, envs= and acts=; None for one that acts in every run."""
+    """(acts(settings), what the setting is for) of one that acts only in some runs (its when=, envs=, acts=); None for
+    one that acts in every run."""
     keys, parts = declared().get(name, {}), []
-    if "when" in keys:
-        parts.append(_condition(keys["when"]))
+    if "when" in keys:  # of CONDITIONS, or a setting that is set
+        when = keys["when"]
+        parts.append(CONDITIONS.get(when) or (lambda c: bool(c.get(when)), f"runs with {flag(when)}"))
     if "envs" in keys:
         on_env, text = ENV_SETS[keys["envs"]]
         parts.append((lambda c: on_env(c.get("env", "")), text))
@@ -442,14 +394,14 @@ def scope(name: str) -> tuple | None:
 
 
 def acts(name: str, settings: dict) -> bool:
-    """Whether setting `name` acts in a run of these settings (its field's when=, envs=, acts=)."""
+    """Whether setting `name` acts in a run of these settings."""
     where = scope(name)
     return where is None or bool(where[0](settings))
 
 
 def acting_settings(config: dict) -> dict:
-    """A run's config.json less the settings that did nothing in it: what a plot may name a curve
-    by. Runs from before the rule recorded them (--method drq --dear-feature push ran as drq)."""
+    """A run's config.json less the settings that did nothing in it: what a plot may name a curve by (runs from before
+    the rule recorded them: --method drq --dear-feature push ran as drq)."""
     return {name: value for name, value in config.items() if acts(name, config)}
 
 
@@ -471,12 +423,6 @@ def given_as(name: str, value) -> str:
     return f"{flag(name)} {value}"
 
 
-def idle_flags(cfg, run: RunConfig, given: dict) -> dict:
-    """{name: what it is for} of the flags given that do nothing in this run."""
-    settings = {**vars(cfg), **vars(run)}
-    return {name: scope(name)[1] for name in given if not acts(name, settings)}
-
-
 def refusal(idle: dict, given: dict, where: str) -> str:
     """'--x 1 does nothing in this run (drq on walker-walk): it is for ...', of one or several flags."""
     if len(idle) == 1:
@@ -487,11 +433,11 @@ def refusal(idle: dict, given: dict, where: str) -> str:
 
 
 def check_applies(cfg, run: RunConfig, given: dict, resumed=False) -> set:
-    """A flag given where it does nothing is one line, exit 2. With --drop-inapplicable (sweep.py:
-    one set of flags for every method of a grid) it is dropped instead: back to its default, which
-    config.json then records (a resumed run keeps its saved value), in one line for all of them. Returns
-    the names dropped."""
-    idle = idle_flags(cfg, run, given)
+    """A flag given where it does nothing is one line, exit 2; with --drop-inapplicable (sweep.py: one set of flags for
+    every method of a grid) it is dropped, back to its default (a resumed run keeps its saved value), in one line for
+    all of them. Returns the names dropped."""
+    settings = {**vars(cfg), **vars(run)}
+    idle = {name: scope(name)[1] for name in given if not acts(name, settings)}
     if not idle:
         return set()
     where = f"{method_label(cfg)} on {cfg.env}"
@@ -506,18 +452,12 @@ def check_applies(cfg, run: RunConfig, given: dict, resumed=False) -> set:
     return set(idle)
 
 
-# ------------------------------------------------------------------------------------------------
-# Values: types (the parser), ranges, the rules between fields
-# ------------------------------------------------------------------------------------------------
-# Seeds: numpy's legacy seeding (np.random.seed, dm_control's and Meta-World's RandomState) takes [0, 2^32),
-# and the eval env's seed is the run's + 100000 (experiment.EVAL_SEED). Episodes' reset seeds go to
-# default_rng, which takes any non-negative integer.
+# ------------------------------------------------------------------------------------------------ values
+# Seeds: numpy's legacy seeding (np.random.seed, dm_control's and Meta-World's RandomState) takes [0, 2^32), and the
+# eval env's seed is the run's + 100000 (experiment.EVAL_SEED); episodes' reset seeds go to default_rng.
 EVAL_SEED = 100_000
 MAX_SEED = 2**32 - 1 - EVAL_SEED
-
 DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")  # what a setting with metavar DEVICE takes
-
-
 _BOUNDS = {"low": (">=", operator.ge), "above": (">", operator.gt), "high": ("<=", operator.le)}
 
 
@@ -545,10 +485,6 @@ def parse_seeds(spec: str) -> list[int]:
     return seeds
 
 
-def _mask_source_ok(source: str) -> bool:
-    return source == "sim" or (source.startswith("learned:") and len(source) > len("learned:"))
-
-
 # The rules between fields: (broken(cfg), what to say).
 RELATIONS = (
     (lambda cfg: cfg.method == "ef" and cfg.ef_agent_dim >= cfg.latent_dim,
@@ -563,7 +499,7 @@ RELATIONS = (
     (lambda cfg: cfg.latent_dim % 2,
      lambda cfg: f"--latent-dim must be even (it is split in two halves), got {cfg.latent_dim}"),
     (lambda cfg: 84 % cfg.mae_patch, lambda cfg: f"--mae-patch must divide 84, got {cfg.mae_patch}"),
-    (lambda cfg: not _mask_source_ok(cfg.mask_source),
+    (lambda cfg: cfg.mask_source != "sim" and not re.fullmatch("learned:.+", cfg.mask_source, re.S),
      lambda cfg: f"--mask-source must be sim or learned:PATH (a segment.py model file), got '{cfg.mask_source}'"),
 )
 
@@ -614,9 +550,8 @@ def no_video_writer(cfg, run) -> str | None:
 CHECKS = (not_finite, out_of_range, no_such_device, bad_seeds, unrelated, no_video_writer)
 
 
-def validate(cfg, run: RunConfig, methods: dict = None) -> None:
-    """What the parser's types and choices cannot see: finite numbers, ranges and the rules between fields
-    (CHECKS, in order; the first that fails is the one line)."""
+def validate(cfg, run: RunConfig) -> None:
+    """What the parser's types and choices cannot see: CHECKS, in order; the first that fails is the one line."""
     message = next(filter(None, (check(cfg, run) for check in CHECKS)), None)
     if message:
         raise ConfigError(message)
@@ -641,18 +576,18 @@ def check_learning_starts(cfg) -> None:
                           f"{cfg.seed_frames} (action repeat {repeat}): learning would never start")
 
 
-# ------------------------------------------------------------------------------------------------
-# Saved configs: config.json, --resume, --init-from
-# ------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------ saved configs
+UNSAVED = {f.name for f in dataclasses.fields(RunConfig) if not f.metadata.get("saved", True)}
+
+
 def config_dict(cfg, run: RunConfig) -> dict:
     """config.json and a snapshot's "config": every saved field of both, flat, as one --flag each."""
-    unsaved = {f.name for f in dataclasses.fields(RunConfig) if not f.metadata.get("saved", True)}
-    return {**dataclasses.asdict(cfg), **{k: v for k, v in dataclasses.asdict(run).items() if k not in unsaved}}
+    return {**dataclasses.asdict(cfg), **{k: v for k, v in dataclasses.asdict(run).items() if k not in UNSAVED}}
 
 
 def split_config(values: dict, Config) -> tuple:
-    """The (Config, RunConfig) of a flat dict of settings: fields since removed are dropped, renamed
-    ones carried over."""
+    """The (Config, RunConfig) of a flat dict of settings: fields since removed are dropped, renamed ones carried over.
+    """
     values = dict(values)
     if "std_frames" in values and "std_steps" not in values:  # snapshots from before std counted steps
         values["std_steps"] = max(1, values["std_frames"] // max(1, values.get("action_repeat") or 1))
@@ -663,10 +598,9 @@ def split_config(values: dict, Config) -> tuple:
     return build(Config), build(RunConfig)
 
 
-def evaluate_config(given: dict, Config, methods: dict) -> tuple:
-    """--evaluate RUN_DIR: the run's saved config with the few flags evaluate_may_set on top (the
-    run's own --save-video does not carry over), and its snapshot. It scores the run as it is: only
-    how many episodes, whether to film, and where to compute."""
+def evaluate_config(given: dict, Config) -> tuple:
+    """--evaluate RUN_DIR: the run as it is (its saved config, without its own --save-video) with only the flags
+    evaluate_may_set on top, and its snapshot."""
     if given.get("resume"):
         raise ConfigError("--evaluate scores a run, --resume trains it further: give one of them")
     snapshot = load_snapshot(given["evaluate"], "--evaluate")
@@ -678,13 +612,13 @@ def evaluate_config(given: dict, Config, methods: dict) -> tuple:
                           f"only {flags} can")
     cfg, run = split_config({**snapshot["config"], "save_video": False, **given}, Config)
     check_applies(cfg, run, given, resumed=True)  # --eval-episodes-per-task on a single task
-    validate(cfg, run, methods)
+    validate(cfg, run)
     return cfg, run, snapshot
 
 
 def parse_args(argv, Config, methods: dict) -> tuple:
-    """(Config, RunConfig, snapshot) from the flags; with --resume or --evaluate, the run's saved
-    config (plus the few flags that may change) and its snapshot, else snapshot None."""
+    """(Config, RunConfig, snapshot) from the flags; with --resume or --evaluate, the run's saved config (plus the few
+    flags that may change) and its snapshot, else snapshot None."""
     parser = build_parser(Config, methods)
     argv = negative_numbers_as_values(sys.argv[1:] if argv is None else list(argv))
     namespace, extras = parser.parse_known_args(argv)
@@ -692,11 +626,11 @@ def parse_args(argv, Config, methods: dict) -> tuple:
         parser.error(unknown_arguments(extras, flag_names(Config)))
     given = vars(namespace)
     if given.get("evaluate"):
-        return evaluate_config(given, Config, methods)
+        return evaluate_config(given, Config)
     if given.get("resume"):
-        return resume_config(given, Config, methods)
+        return resume_config(given, Config)
     cfg, run = split_config(given, Config)
-    validate(cfg, run, methods)
+    validate(cfg, run)
     check_env(cfg)
     check_run_root(run.run_root)
     if cfg.mask_source.startswith("learned:"):  # config.json names the model from anywhere
@@ -712,22 +646,20 @@ def parse_args(argv, Config, methods: dict) -> tuple:
     return cfg, run, None
 
 
-def resume_config(given: dict, Config, methods: dict) -> tuple:
-    """--resume RUN_DIR: the run's saved config, with only the settings marked resume_may_change
-    given otherwise, and its snapshot. A resumed config was resolved when the run started: no recipe
-    again."""
+def resume_config(given: dict, Config) -> tuple:
+    """--resume RUN_DIR: the run's saved config, with only the settings marked resume_may_change given otherwise, and
+    its snapshot. A resumed config was resolved when the run started: no recipe again."""
     snapshot = load_snapshot(given["resume"])
     check_run_config(given["resume"])
     saved = snapshot["config"]
     cfg, run = split_config({**saved, **given}, Config)
     check_applies(cfg, run, given, resumed=True)
-    unsaved = {f.name for f in dataclasses.fields(RunConfig) if not f.metadata.get("saved", True)}
     changeable = may("resume_may_change")
     for k, v in given.items():
-        if k not in changeable | unsaved and saved.get(k) != v:
+        if k not in changeable | UNSAVED and saved.get(k) != v:
             raise ConfigError(f"{flag(k)} cannot change on --resume (run has {saved.get(k)!r}); "
                               f"only {', '.join(sorted(changeable))} can")
-    validate(cfg, run, methods)
+    validate(cfg, run)
     return cfg, run, snapshot
 
 
@@ -735,9 +667,9 @@ GROUP_FILE = "group.json"  # harness/group.py's: a seed group's folder holds it,
 
 
 def finished(cfg, run: RunConfig, snapshot, group: str = "") -> str | None:
-    """--resume of a run (or with `group`, of its seed group's folder) that has trained its --frames
-    and was evaluated at its last frame: the line that says so, before any env or network is built.
-    None for any other command, and for a run of a seed group resumed alone (its group resumes it)."""
+    """--resume of a run (or with `group`, of its seed group's folder) that has trained its --frames and was evaluated
+    at its last frame: the line that says so, before any env or network is built. None for any other command, and for a
+    run of a seed group resumed alone (its group resumes it)."""
     counters = (snapshot or {}).get("counters")
     if not run.resume or run.evaluate or not counters:
         return None
@@ -749,16 +681,14 @@ def finished(cfg, run: RunConfig, snapshot, group: str = "") -> str | None:
     evaluated = counters.get("last_eval_frame", counters.get("next_eval", 0) - 1)
     if frame < cfg.frames or evaluated != frame:
         return None
-    return (f"{run.resume} is done: it trained to frame {frame} (--frames {cfg.frames}) and was "
-            f"evaluated there; its results are in {run.resume} (eval.csv, train.csv); to train "
-            f"further: python sear.py --resume {run.resume} --frames N, with N > {frame}")
+    return (f"{run.resume} is done: it trained to frame {frame} (--frames {cfg.frames}) and was evaluated there; its "
+            f"results are in {run.resume} (eval.csv, train.csv); to train further: python sear.py --resume "
+            f"{run.resume} --frames N, with N > {frame}")
 
 
 def main(argv, Config, methods: dict, train, evaluate) -> int:
-    """sear.py's exit: 0 done, 2 bad input or a storage error (one line), 1 a run that diverged (one
-    line), 130 Ctrl-C and 143 SIGTERM (one line saying what was saved). train(cfg, run, snapshot)
-    trains; with --evaluate, evaluate(cfg, run, snapshot) scores the snapshot; --resume of a
-    finished run says so (finished)."""
+    """sear.py's exit: 0 done, 2 bad input or a storage error, 1 a run that diverged, 130 Ctrl-C and 143 SIGTERM, each
+    in one line. train(cfg, run, snapshot) trains; with --evaluate, evaluate(cfg, run, snapshot) scores."""
     configure_allocator()
     with TERM.installed():
         try:
@@ -768,12 +698,9 @@ def main(argv, Config, methods: dict, train, evaluate) -> int:
                 print(done)
             else:
                 (evaluate if run.evaluate else train)(cfg, run, snapshot)
-        except (ConfigError, StorageError) as e:
+        except (ConfigError, StorageError, NonFinite) as e:
             print(f"sear.py: error: {e}", file=sys.stderr)
-            return 2
-        except NonFinite as e:
-            print(f"sear.py: error: {e}", file=sys.stderr)
-            return 1
+            return 1 if isinstance(e, NonFinite) else 2
         except Interrupted as e:
             print(f"\nsear.py: {e}", file=sys.stderr)
             return e.code
@@ -785,8 +712,8 @@ def main(argv, Config, methods: dict, train, evaluate) -> int:
 
 
 def torch_setup(run: RunConfig):
-    """The run's torch device (--device), checked with --replay-device, --tf32 and --compile against
-    this machine, and its CPU threads (--threads) set."""
+    """The run's torch device (--device), checked with --replay-device, --tf32 and --compile against this machine, and
+    its CPU threads (--threads) set."""
     import torch
     device = run_device(run.device)
     if run.replay_device not in ("auto", "cpu") and torch.device(run.replay_device) != device:
@@ -818,9 +745,8 @@ def run_device(name: str):
 
 
 def no_tf32(run: RunConfig, device) -> None:
-    """--tf32 where there is no CUDA: refused as every flag that does nothing, or with
-    --drop-inapplicable turned off. A run --evaluate scores keeps its saved --tf32, which it cannot
-    set: off without a word."""
+    """--tf32 where there is no CUDA: refused as every flag that does nothing, or turned off with --drop-inapplicable;
+    a run --evaluate scores keeps its saved --tf32, which it cannot set: off without a word."""
     if run.evaluate:
         run.tf32 = False
         return
@@ -829,5 +755,3 @@ def no_tf32(run: RunConfig, device) -> None:
         raise ConfigError(line + ("; --no-tf32 turns it off" if run.resume else ""))
     run.tf32 = False
     warn(f"--drop-inapplicable: ignored what does nothing in this run (device {device}): --tf32")
-
-

@@ -1,10 +1,7 @@
-"""The files sear.py writes and the run directories it is given: storage errors in one line (a full
-disk, a read-only or foreign folder: never a traceback) with the writes every writer shares
-(`storing`, `write_atomically`, `torch_save`), at the bottom of the stack so that segment.py uses
-them too; a RUN_DIR given as an input (--run-root, --resume, --evaluate, --init-from), who owns one,
-its snapshot and, for --init-from, the network sizes taken from it; the two errors of bad input
-(ConfigError) and of storage (StorageError). cli.py takes its names from here. Loads no numpy or
-torch at import.
+"""The files sear.py writes and the run directories it is given: storage errors in one line (`storing`,
+`write_atomically`, `torch_save`: segment.py's writes too); a RUN_DIR given as an input (--run-root, --resume,
+--evaluate, --init-from), who owns one, its snapshot and, for --init-from, the network sizes taken from it. cli.py
+takes its names from here. Loads no numpy or torch at import.
 """
 from __future__ import annotations
 
@@ -26,14 +23,12 @@ class ConfigError(ValueError):
 
 
 class StorageError(Exception):
-    """An OSError while writing a file the user keeps (a run directory's files, segment.py's model and
-    label folders), as one line naming the file and the cause."""
+    """An OSError while writing a file the user keeps (a full disk, a read-only or foreign folder), as one line naming
+    the file and the cause, never a traceback."""
 
 
-# --- Storage errors: a full disk, a read-only or foreign folder is one line, never a traceback -----
 def storage_message(path, err: OSError) -> str:
-    """'cannot write PATH: No space left on device (ENOSPC)': the path being written and the system's
-    reason (strerror, not str(err): imageio's and torch's messages run on for lines)."""
+    """'cannot write PATH: No space left on device (ENOSPC)' (strerror: imageio's and torch's str(err) run on)."""
     if err.errno in (errno.EEXIST, errno.ENOTDIR):  # a file where a folder should be: say which
         for where in (path, *parents(path)):
             if os.path.lexists(where) and not os.path.isdir(where):
@@ -46,8 +41,7 @@ def storage_message(path, err: OSError) -> str:
 
 @contextlib.contextmanager
 def storing(path):
-    """Around every write of a run directory's or segment.py's files: an OSError becomes a StorageError
-    naming `path`."""
+    """Around every write of a run directory's or segment.py's files: an OSError is a StorageError naming `path`."""
     try:
         yield
     except OSError as e:
@@ -55,8 +49,8 @@ def storing(path):
 
 
 class _WriteRecorder:
-    """A file for torch.save that keeps the OSError of a failed write: torch turns it into
-    'inline_container.cc ... unexpected pos', which names neither the file nor the cause."""
+    """A file for torch.save that keeps the OSError of a failed write: torch turns it into 'inline_container.cc ...
+    unexpected pos', which names neither the file nor the cause."""
 
     def __init__(self, f):
         self.f, self.error = f, None
@@ -84,8 +78,8 @@ def torch_save(obj, f):
 
 
 def write_atomically(path, write, mode="wb"):
-    """write(f) into PATH.tmp, then rename it onto PATH: a kill or a storage error mid-write leaves the
-    previous file whole and no .tmp behind; an OSError is a StorageError naming PATH."""
+    """write(f) into PATH.tmp, then rename it onto PATH: a kill or a storage error mid-write leaves the previous file
+    whole and no .tmp behind; an OSError is a StorageError naming PATH."""
     tmp = path + ".tmp"
     try:
         with storing(path):
@@ -98,17 +92,14 @@ def write_atomically(path, write, mode="wb"):
 
 
 def first_sentence(text) -> str:
-    """The first sentence of a message, on one line. Error lines end at a sentence boundary; a
-    length cut would stop them mid-word (torch's archive errors run on for 400 characters)."""
+    """The first sentence of a message, on one line (torch's archive errors run on for 400 characters)."""
     text = " ".join(str(text).split())
     end = text.find(". ")
     sentence = text[: end + 1] if end >= 0 else text
     return sentence if not sentence or sentence.endswith((".", "!", "?")) else sentence + "."
 
 
-# ------------------------------------------------------------------------------------------------
-# Run directories as inputs: --run-root, the RUN_DIR of --resume / --evaluate / --init-from, its owner
-# ------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------ run directories
 def parents(path):
     """The folders above path, nearest first, as given (relative stays relative)."""
     while os.path.dirname(path) not in ("", path):
@@ -117,8 +108,7 @@ def parents(path):
 
 
 def check_run_root(run_root):
-    """Before a new run directory is made: --run-root must be a folder this process can write, or
-    one it can create (the nearest existing parent is then checked)."""
+    """--run-root must be a folder this process can write, or one it can create (its nearest existing parent)."""
     existing = next(p for p in (run_root, *parents(run_root), ".") if os.path.lexists(p))
     if not os.path.isdir(existing):
         raise ConfigError(f"--run-root: '{run_root}' is a file, not a folder" if existing == run_root else
@@ -146,9 +136,8 @@ def check_run_dir(run_dir, flag="--resume"):
 
 
 def check_run_config(run_dir):
-    """--resume: config.json must be the JSON object the run wrote (plot.py and sweep.py read it). A
-    broken one is not replaced silently: moved aside by the user, the resumed run writes it again
-    from the snapshot's copy (experiment.RunDir)."""
+    """--resume: config.json must be the JSON object the run wrote (plot.py and sweep.py read it); a broken one is not
+    replaced silently: moved aside, the resumed run writes it again from the snapshot's copy."""
     path = os.path.join(run_dir, "config.json")
     if not os.path.lexists(path):
         return
@@ -168,9 +157,8 @@ LOCK_FILE = "run.lock"
 
 
 def lock_holder(fd) -> str:
-    """'sear.py process PID [on HOST]', as the owner wrote it into the lock file. The owner writes it
-    right after taking the lock: a file still empty, or naming a dead process of this host (the
-    previous owner's), is read again for up to 2 s."""
+    """'sear.py process PID [on HOST]', as the owner wrote it right after taking the lock: a file still empty, or
+    naming a dead process of this host (the previous owner's), is read again for up to 2 s."""
     for _ in range(40):
         pid, _, host = os.pread(fd, 256, 0).decode(errors="replace").strip().partition(" ")
         if pid.isdigit() and (host != socket.gethostname() or pid_alive(int(pid))):
@@ -206,8 +194,8 @@ def pid_alive(pid) -> bool:
 
 
 def load_snapshot(run_dir, flag="--resume", mmap=False):
-    """A run's snapshot.pt; every problem is a ConfigError naming `flag` (if any). mmap=True maps the
-    tensors instead of reading them (--init-from reads a snapshot twice: its config, then its weights)."""
+    """A run's snapshot.pt; every problem is a ConfigError naming `flag` (if any). mmap=True maps the tensors instead
+    of reading them (--init-from reads a snapshot twice: its config, then its weights)."""
     import torch
     path = os.path.join(run_dir, "snapshot.pt")
     check_run_dir(run_dir, flag)
@@ -216,8 +204,8 @@ def load_snapshot(run_dir, flag="--resume", mmap=False):
         owner = lock_owner(run_dir)
         if owner:
             raise ConfigError(f"{flag}'{run_dir}' is in use by {owner}, which has not written its first snapshot yet")
-        raise ConfigError(f"{flag}'{run_dir}' has no snapshot.pt (the run stopped before its first "
-                          f"snapshot; see --snapshot-minutes)")
+        raise ConfigError(f"{flag}'{run_dir}' has no snapshot.pt (the run stopped before its first snapshot; see "
+                          f"--snapshot-minutes)")
     try:
         return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as e:  # corrupt or foreign file: say so in one line
@@ -232,8 +220,7 @@ def load_snapshot(run_dir, flag="--resume", mmap=False):
 
 
 def init_fields(cfg, init_parts: str) -> tuple[str, ...]:
-    """The config fields that fix the shapes of the parts --init-parts copies: they must be the
-    source run's."""
+    """The config fields that fix the shapes of the parts --init-parts copies: they must be the source run's."""
     fields = ("method", "latent_dim", "frame_stack")
     if init_parts != "encoder" and cfg.method == "curl":
         fields += ("feature_dim",)  # CURL's W and key read the critic's feature
@@ -243,8 +230,8 @@ def init_fields(cfg, init_parts: str) -> tuple[str, ...]:
 
 
 def inherit_from_source(cfg, run, explicit: set, Config) -> set:
-    """--init-from: the fields that fix the shapes of the copied networks (init_fields) come from the
-    source run's config; given explicitly, they must equal it. Returns the fields taken."""
+    """--init-from: the fields that fix the shapes of the copied networks (init_fields) come from the source run's
+    config; given explicitly, they must equal it. Returns the fields taken."""
     state = load_snapshot(run.init_from, "--init-from", mmap=True)
     source, defaults = state["config"], Config()
     run.init_from = os.path.abspath(run.init_from)  # config.json names the source from anywhere

@@ -1,6 +1,6 @@
-"""The process sear.py runs in: SIGTERM (how SLURM, timeout, docker stop and systemd stop it), glibc's
-malloc, torch's CPU threads, TF32, the C++ compiler inductor needs, and the start-up warnings. cli.py
-takes its names from here (cli.torch_setup checks the devices). Loads no numpy or torch at import.
+"""The process sear.py runs in: SIGTERM (how SLURM, timeout, docker stop and systemd stop it), glibc's malloc,
+torch's CPU threads, TF32, the C++ compiler inductor needs, and the start-up warnings. cli.py takes its names from
+here. Loads no numpy or torch at import.
 """
 from __future__ import annotations
 
@@ -12,26 +12,21 @@ import sys
 import threading
 
 
-# ------------------------------------------------------------------------------------------------
-# SIGTERM: how SLURM, timeout, docker stop and systemd stop a process
-# ------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------ SIGTERM
 class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt: the same handlers stop the run."""
 
 
 class TermSignal:
-    """SIGTERM stops a run as Ctrl-C does, at the next safe point when the grace allows. While a run
-    trains (`defer`, set by experiment.RunDir), the first SIGTERM only asks it to stop there: before
-    the run directory is made, or at the next episode end, where a snapshot holds the exact state
-    (SLURM's --signal=TERM@SECONDS gives that grace before the time limit). Anywhere else (reading
-    flags, --evaluate), or a second time, it stops at once. Exit code 143 (128 + 15).
+    """SIGTERM stops a run as Ctrl-C does (exit 143). While a run trains (`defer`, set by experiment.RunDir), the
+    first SIGTERM only asks it to stop at the next episode end, where a snapshot holds the exact state (SLURM's
+    --signal=TERM@SECONDS gives that grace); anywhere else, or a second time, it stops at once.
 
-    Python runs a signal handler in the main thread only, between bytecodes: while that thread is
-    inside one long native call (a torch operation, a render) the handler waits for the call to
-    end, and a SIGTERM seems ignored. So a watcher thread hears every SIGTERM too (set_wakeup_fd:
-    the interpreter's C-level handler writes the signal's number into a pipe at once), and when one
-    that stops at once has not ended the process GRACE seconds later, it ends it: one line saying
-    what stands (`stands`, set by experiment.RunDir), exit 143, no Python code of the main thread."""
+    Python runs a signal handler in the main thread only, between bytecodes: while that thread is inside one long
+    native call (a torch operation, a render) the handler waits for the call to end, and a SIGTERM seems ignored. So a
+    watcher thread hears every SIGTERM too (set_wakeup_fd: the interpreter's C-level handler writes the signal's number
+    into a pipe at once), and when one that stops at once has not ended the process GRACE seconds later, it ends it:
+    one line saying what stands (`stands`, set by experiment.RunDir), exit 143, no Python code of the main thread."""
 
     GRACE = 5.0
 
@@ -103,9 +98,7 @@ def stop_cause(stop: KeyboardInterrupt) -> tuple[str, int]:
     return ("stopped by SIGTERM", 128 + signal.SIGTERM) if isinstance(stop, Terminated) else ("interrupted", 130)
 
 
-# ------------------------------------------------------------------------------------------------
-# The process: glibc's malloc, torch's threads and device
-# ------------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------------ the process
 # glibc's malloc at run time (mallopt): never mmap a block of its own (M_MMAP_MAX 0) and never give
 # freed heap back to the OS (M_TRIM_THRESHOLD -1): the update's large activation buffers are then
 # reused from one update to the next instead of being mapped, faulted in and unmapped each time.
@@ -113,12 +106,9 @@ M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # <malloc.h>
 
 
 def configure_allocator() -> bool:
-    """Set glibc's malloc as above for the rest of this process; False where there is no glibc
-    (other platforms, musl), which then keep their allocator. Why: on CPU the 84x84x32 decoder
-    activations (tens of MB at batch 256) would otherwise be mapped and unmapped by glibc at every
-    update: 0.9M minor page faults per SEAR update at batch 256, none once the heap keeps them
-    (`benchmarks/bench_agent.py --compare-allocators`, docs/speed.md, "Allocator"). Called where a
-    process starts (main): blocks allocated before it keep their mmap."""
+    """Set glibc's malloc as above for the rest of this process (blocks allocated before keep their mmap); False
+    without glibc. Why: on CPU the decoder's activations (tens of MB at batch 256) would otherwise cost 0.9M minor
+    page faults per SEAR update (`benchmarks/bench_agent.py --compare-allocators`, docs/speed.md, "Allocator")."""
     if not sys.platform.startswith("linux"):
         return False
     import ctypes
@@ -135,27 +125,21 @@ def usable_cores():
 
 
 def default_threads():
-    """OMP_NUM_THREADS when set (sweep.py sets it per job), else every core this process may run on.
-    Several runs sharing cores should split them: with more busy threads than cores, torch's threads
-    wait on each other and an update gets ~2x slower, not 1x."""
-    if os.environ.get("OMP_NUM_THREADS", "").isdigit() and int(os.environ["OMP_NUM_THREADS"]) > 0:
-        return int(os.environ["OMP_NUM_THREADS"])
-    return usable_cores()
+    """OMP_NUM_THREADS when set (sweep.py sets it per job), else every core this process may run on."""
+    omp = os.environ.get("OMP_NUM_THREADS", "")
+    return int(omp) if omp.isdigit() and int(omp) > 0 else usable_cores()
 
 
 def torch_threads(run) -> int:
-    """--threads, else $OMP_NUM_THREADS, else every usable core; never more than the usable cores.
-    Clamped, not refused: more threads than cores cannot be faster, and torch's OpenMP threads then
-    spin waiting for each other (64 on 2 cores: one nn.init.orthogonal_ of SEAR's encoder ran for
-    minutes instead of 6 s), while an OMP_NUM_THREADS that a cluster or a sweep set for other jobs
-    should not stop a run (start_warnings says it was clamped)."""
+    """--threads, else $OMP_NUM_THREADS, else every usable core; never more than the usable cores. Clamped, not
+    refused (start_warnings says so): more threads cannot be faster (torch's OpenMP threads spin waiting for each
+    other), and an OMP_NUM_THREADS a cluster set for other jobs should not stop a run."""
     return min(run.threads or default_threads(), usable_cores())
 
 
 def start_warnings(cfg, run, training=True) -> list[str]:
-    """Settings that run, but not as meant: more threads than cores (clamped), Distracting Control without
-    the paper's DAVIS backgrounds, a replay smaller than a batch (one smaller than the seed phase, where
-    learning would never start, is refused: check_learning_starts)."""
+    """Settings that run, but not as meant: more threads than cores (clamped), Distracting Control without the paper's
+    DAVIS backgrounds, a replay smaller than a batch."""
     warnings, threads, cores = [], run.threads or default_threads(), usable_cores()
     if threads > cores:
         given = f"--threads {run.threads}" if run.threads else f"OMP_NUM_THREADS={threads}"
@@ -172,12 +156,10 @@ def start_warnings(cfg, run, training=True) -> list[str]:
 
 
 def set_tf32(on: bool) -> None:
-    """TF32 in CUDA's float32 convolutions and matmuls, on or off (torch turns it on for cuDNN's
-    convolutions by default)."""
+    """TF32 in CUDA's float32 convolutions and matmuls, on or off (torch's default is on for cuDNN's)."""
     import torch
-    # The flags every torch since 1.7 reads. torch 2.9's fp32_precision API, set to "ieee" for
-    # convolutions, makes torch.func.vmap's convolutions (the seeds' batched update) raise on
-    # torch 2.13's check of cuDNN's TF32 flag, on the CPU too.
+    # Not torch 2.9's fp32_precision API: "ieee" for convolutions makes torch.func.vmap's convolutions (the seeds'
+    # batched update) raise on torch 2.13's check of cuDNN's TF32 flag, on the CPU too.
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
 
 

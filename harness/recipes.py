@@ -1,7 +1,6 @@
-"""The values a run takes where its flags leave them: the per-task defaults (TASK_DEFAULTS: the paper's
-multi-task settings, DrQ-v2's exploration schedule by task, DEAR's coefficients, DrM's task configs
-in DRM_TASKS) and the authors' recipe (RECIPES), every row with its source. cli.apply_recipe sets
-them. Loads no numpy, torch or MuJoCo at import (envs.py only when a row asks the suite).
+"""The values a run takes where its flags leave them: the per-task defaults (TASK_DEFAULTS: the paper's multi-task
+settings, DrQ-v2's exploration schedule by task, DEAR's coefficients, DrM's task configs in DRM_TASKS) and the
+authors' recipe (RECIPES), every row with its source; cli.apply_recipe sets them. No numpy, torch or MuJoCo at import.
 """
 from __future__ import annotations
 
@@ -32,9 +31,9 @@ def _authors_discount(cfg):
     return round(0.99 ** (1 + (cfg.action_repeat or envs.default_action_repeat(cfg.env))), 6)
 
 
-# Every value where the paper's hyper-parameter table and the authors' released code
-# (github.com/sear-rl/sear-rl) differ: (field, applies to, authors' value, source). The Config defaults
-# are the paper's values; --recipe authors replaces these unless the flag is given explicitly.
+# Every value where the paper's hyper-parameter table and the authors' released code (github.com/sear-rl/sear-rl)
+# differ: (field, applies to, authors' value, source). The Config defaults are the paper's values; --recipe authors
+# replaces these unless the flag is given explicitly.
 RECIPES = {"authors": (
     # (DEAR's c1 and c2 are its own under both recipes: TASK_DEFAULTS)
     ("recon_coef", lambda cfg: not _dear(cfg), 1.0, "sear/cfgs/agent/sear.yaml: reconstruction_loss_coeff"),
@@ -45,8 +44,8 @@ RECIPES = {"authors": (
     ("feature_dim", _humanoid, 100, "sear/cfgs/task/humanoid_{run,stand,walk}.yaml: feature_dim (DrQ-v2's)"),
     ("replay_size", lambda cfg: cfg.env == "quadruped-run", 100_000,
      "sear/cfgs/task/quadruped_run.yaml: replay_buffer_size (DrQ-v2's)"),
-    # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the
-    # replay multiplies by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
+    # Their Meta-World / Kitchen / Adroit wrappers return discount 0.99 for every env step, and the replay multiplies
+    # by 0.99 again per agent step: gamma = 0.99^(action repeat + 1) per step.
     ("discount", _manipulation, _authors_discount,
      "sear/environments/{metaworld,kitchen,adroit}_dm_env.py step(), sear/replay_buffer.py"),
     ("mask_downsample", _manipulation, "stride", "sear/environments/wrappers.py: SegmentationFilter [::3, ::3]"),
@@ -61,11 +60,11 @@ def _drqv2_std_steps(cfg):
     return envs.exploration_std_steps(cfg.env)
 
 
-# DrM's dm_control task configs (github.com/XuGW-Kevin/DrM at 317116a, cfgs/): what a --drm run on each
-# task takes where it differs from this project's defaults. Every task: its cfgs/task/<task>.yaml (the
-# `hard` group's exploration schedule, lr, feature_dim, batch_size, replay_buffer_size,
-# agent.max_perturb_factor) over cfgs/config.yaml (replay_buffer_size 1000000). agent.target_lambda is 0.6
-# in all of them (the --drm-lambda default); nstep is config.yaml's 3 everywhere (ours). docs/drm.md.
+# DrM's dm_control task configs (github.com/XuGW-Kevin/DrM at 317116a, cfgs/): what a --drm run on each task takes
+# where it differs from this project's defaults. Every task: its cfgs/task/<task>.yaml (the `hard` group's exploration
+# schedule, lr, feature_dim, batch_size, replay_buffer_size, agent.max_perturb_factor) over cfgs/config.yaml
+# (replay_buffer_size 1000000). agent.target_lambda is 0.6 in all of them (the --drm-lambda default); nstep is
+# config.yaml's 3 everywhere (ours). docs/drm.md.
 _DRM_HARD = {"std_steps": 2_000_000}                   # cfgs/task/hard.yaml: linear(1.0,0.1,2000000)
 _DRM_BIG = {"lr": 8e-5, "feature_dim": 100}            # dog_* and humanoid_*
 _DRM_REPLAY = {"replay_size": 1_000_000}               # cfgs/config.yaml: replay_buffer_size
