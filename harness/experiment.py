@@ -1,11 +1,9 @@
 """What train.py's loop calls besides the algorithm: the envs' settings, the evaluation's decoder metrics and videos,
---evaluate's scores, the replay buffer's file, transfer (--init-from), and the run directory (config.json, train.csv /
-eval.csv and TensorBoard, snapshots, resume and its side files, one owner at a time, what a Ctrl-C, SIGTERM or storage
-error leaves) with its progress line and ETA and the health checks of every update (docs/health.md).
+--evaluate, the replay buffer's file, --init-from, and the run directory (config.json, the CSVs and TensorBoard,
+snapshots, resume, one owner, what a stop leaves) with its progress line and the health checks of every update.
 
 Imports cli.py, and lazily envs.py and segment.py (`import sear` needs only torch, numpy and the standard library);
-never sear.py, whose agent, buffer and config it receives as arguments.
-"""
+never sear.py, whose agent, buffer and config it receives as arguments."""
 from __future__ import annotations
 
 import collections
@@ -382,23 +380,6 @@ def take_lock(run_dir) -> int | None:
     return fd
 
 
-class CsvLog:
-    """Rows appended to a CSV whose header is fixed by the first row."""
-
-    def __init__(self, path):
-        self.path, self.fields = path, None
-        if os.path.exists(path):
-            with open(path, newline="") as f:
-                self.fields = next(csv.reader(f), None)
-
-    def write(self, row: dict):
-        with storing(self.path), open(self.path, "a", newline="") as f:
-            if self.fields is None:
-                self.fields = list(row)
-                csv.writer(f).writerow(self.fields)
-            csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
-
-
 def set_aside_rows_after(path, frame):
     """On resume, rows logged after the snapshot describe steps that will be re-run: they go to a side file, and the
     main CSV stays consistent with the snapshot."""
@@ -421,19 +402,6 @@ def new_run_dir(root: str, name: str) -> str:
     base = os.path.join(root, f"{name}__{time.strftime('%Y%m%d-%H%M%S')}")
     with storing(base):
         return claim_new_path(base, "", os.makedirs)
-
-
-def rng_state():
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
-
-
-def set_rng_state(state):
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if state["cuda"] is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
 
 
 def size(n: float) -> str:
@@ -636,17 +604,11 @@ class Progress:
 
 
 class Health:
-    """What every update's metrics say (RunDir.read_updates), beyond the numbers in train.csv.
-
-    A loss or Q that is not a finite number stops the run (cli.NonFinite) before the next action reaches the simulator;
-    an action that is not finite stops it too (runenvs.check_finite). Two warnings, each given once, on the progress
-    line and stderr (docs/health.md says how the thresholds were chosen from the runs of EXPERIMENTS.md):
-    - the actor has collapsed: over the last COLLAPSE_WINDOW updates, on average at least SATURATED of the batch's
-      mean-action entries at exactly +-1 (actor_saturated) and their spread over the batch at most SPREAD
-      (action_spread): one action in every state, at the bound, where tanh passes no gradient;
-    - the critic diverges: the median |Q| of the last DIVERGE_WINDOW updates is more than DIVERGE_FACTOR times the
-      largest return any policy can have, max |reward per agent step| seen / (1 - discount) (rewards of at least 1
-      per step assumed until larger ones are seen)."""
+    """What every update's metrics say (RunDir.read_updates), beyond the numbers in train.csv: a loss or Q that is not
+    finite stops the run (cli.NonFinite) before the next action reaches the simulator; two warnings, each given once
+    on the progress line and stderr, say that the actor has collapsed and that the critic diverges (the largest return
+    any policy can have assumes rewards of at least 1 per step until larger ones are seen). docs/health.md says how
+    the thresholds were chosen from the runs of EXPERIMENTS.md."""
 
     COLLAPSE_WINDOW, SATURATED, SPREAD = 500, 0.99, 1e-3
     DIVERGE_WINDOW, DIVERGE_FACTOR = 100, 2.0
@@ -662,9 +624,6 @@ class Health:
     def see_rewards(self, rewards: np.ndarray):
         if len(rewards):
             self.reward_scale = max(self.reward_scale, float(np.abs(rewards).max()))
-
-    def q_bound(self) -> float:
-        return self.reward_scale / (1.0 - self.discount) if self.discount < 1 else math.inf
 
     def check(self, metrics: dict) -> list[tuple[str, str]]:
         """One update's metrics: raises cli.NonFinite on a value that is not finite; returns the warnings (short
@@ -685,6 +644,9 @@ class Health:
                  if kind not in self.warned and (message := check())]
         self.warned.update(kind for kind, _ in fired)
         return fired
+
+    def q_bound(self) -> float:
+        return self.reward_scale / (1.0 - self.discount) if self.discount < 1 else math.inf
 
     def collapsed(self) -> str | None:
         if len(self.saturated) < self.COLLAPSE_WINDOW:
@@ -830,24 +792,21 @@ class Console:
 
 
 class RunDir:
-    """The `with` block a run trains in: its directory (config.json, train.csv / eval.csv and TensorBoard events,
-    snapshot.pt with buffer.npz beside it (--save-buffer), videos/, the side files of a resume, run.lock) and its
-    Console. Nothing is created before create(); the directory is owned (take_lock) from before its first write until
-    release(). On Ctrl-C, SIGTERM, a storage error or a value that is not finite: one line that says what stands. A
-    first SIGTERM waits for a safe point: create(), or safe_point() between episodes; an evaluation under way ends at
-    its episode end first.
-
-    The loop (train.train) decides when to evaluate and to snapshot and moves its Counters; RunDir writes what it is
-    handed, and snapshots on its own only on a Ctrl-C or SIGTERM between episodes and at the end. A snapshot holds
-    the agent, the RNG states, the counters and, beside it, the replay buffer; the next episode's reset seed follows
-    from its number, so a resume (with --save-buffer) does exactly what the uninterrupted run would have done."""
+    """The `with` block a run trains in: its directory (config.json, train.csv / eval.csv and TensorBoard, snapshot.pt
+    with buffer.npz, videos/, a resume's side files, run.lock), made by create() and owned until release(), and its
+    Console. A Ctrl-C, SIGTERM, storage error or value that is not finite ends in one line of what stands; a first
+    SIGTERM waits for a safe point (create(), safe_point() between episodes; an evaluation ends at its episode end).
+    The loop (train.train) decides when to evaluate and snapshot and moves the Counters; RunDir writes what it is
+    handed, and snapshots on its own only on a stop between episodes and at the end. A snapshot holds agent, RNG
+    states and counters, buffer.npz the replay: with it a resume does exactly what the uninterrupted run would have."""
 
     def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
         self.cfg, self.run, self.resumed = cfg, run, snapshot
         self.path = run.resume or None  # a new run's is made by create(): removed if it ends before a snapshot
-        self.group = None  # the seed group's folder this run belongs to (group.py): what --resume takes then
+        self.group = None  # the seed group's folder (group.py): what --resume takes then, else self.path
         self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
-        self.lock = self.train_log = self.eval_log = self.writer = None
+        self.lock = self.writer = None
+        self.fields = {}  # each CSV's header, as its first row fixed it
         self.console = Console(cfg, run, (snapshot or {}).get("progress"))
         self.health = Health(cfg.discount)
         self.counters = self.agent = self.buffer = self.sample_rng = None  # the loop's, from start()
@@ -863,11 +822,6 @@ class RunDir:
     @property
     def frame(self):
         return self.counters.step * self.cfg.action_repeat if self.counters else self.snapshot_frame or 0
-
-    @property
-    def resume_path(self) -> str:
-        """What `sear.py --resume` takes to continue this run: its directory, or its seed group's folder."""
-        return self.group or self.path
 
     # --- start ---
     def create(self):
@@ -902,8 +856,6 @@ class RunDir:
         self.agent, self.buffer, self.sample_rng = agent, buffer, sample_rng
         self.console.say_run(self.path, agent, buffer)
         counters, wall_time = self.restore() if self.resumed else (Counters(), 0.0)
-        self.train_log = CsvLog(os.path.join(self.path, "train.csv"))
-        self.eval_log = CsvLog(os.path.join(self.path, "eval.csv"))
         try:
             from torch.utils.tensorboard import SummaryWriter
             self.writer = SummaryWriter(self.path)
@@ -941,7 +893,11 @@ class RunDir:
         refills); rows logged after it go to side files. Returns its counters and wall time."""
         state, buffer = self.resumed, os.path.join(self.path, "buffer.npz")
         load_agent(self.agent, state["agent"], self.cfg, "--resume")
-        set_rng_state(state["rng"])
+        random.setstate(state["rng"]["python"])
+        np.random.set_state(state["rng"]["numpy"])
+        torch.set_rng_state(state["rng"]["torch"])
+        if state["rng"]["cuda"] is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["rng"]["cuda"])
         if "rng" not in state["agent"]:  # before the agent had its own generator: torch's stream was it
             old = state["rng"]["torch"] if self.agent.device.type == "cpu" else \
                 state["rng"]["cuda"][self.agent.device.index or 0]
@@ -988,7 +944,9 @@ class RunDir:
             raise cli.NonFinite("the snapshot due now was not written")
         counters = {**dataclasses.asdict(self.counters), "wall_time": time.time() - self.start_time}
         payload = {"config": cli.config_dict(self.cfg, self.run), "agent": compact(self.agent.state_dict()),
-                   "rng": rng_state(), "sample_rng": self.sample_rng.bit_generator.state,
+                   "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+                           "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
+                   "sample_rng": self.sample_rng.bit_generator.state,
                    "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters,
                    "progress": self.console.progress.state()}  # the ETA of the next start
         if not self.run.save_buffer:
@@ -1108,7 +1066,7 @@ class RunDir:
         if self.snapshot_frame is None:
             return cli.StorageError(f"{error}; {self.no_snapshot(removed)}" + " (nothing to resume)" * removed)
         return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: "
-                                f"fix that, then python sear.py --resume {self.resume_path}")
+                                f"fix that, then python sear.py --resume {self.group or self.path}")
 
     def what_a_kill_leaves(self) -> str:
         """What stands when the process is ended at once (cli.TermSignal's forced stop, from its watcher thread while
@@ -1119,7 +1077,7 @@ class RunDir:
             removed = self.remove_if_unsaved()
             return self.no_snapshot(removed) + ("" if removed else ": delete it")
         return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python "
-                f"sear.py --resume {self.resume_path}")
+                f"sear.py --resume {self.group or self.path}")
 
     def non_finite_networks(self) -> list[str]:
         """The agent's networks with a parameter that is not a finite number."""
@@ -1140,7 +1098,7 @@ class RunDir:
                 + "; it stopped before that reached the simulator")
         if self.snapshot_frame is not None:
             return (line + f"; the last snapshot (frame {self.snapshot_frame}) stands: python sear.py --resume "
-                    f"{self.resume_path} continues from it (with --save-buffer it replays the same updates): "
+                    f"{self.group or self.path} continues from it (with --save-buffer it replays the same updates): "
                     "docs/health.md")
         return (line + f"; {self.no_snapshot(removed)}; start again with other settings (a lower --lr, smaller loss "
                 "weights): docs/health.md")
@@ -1169,9 +1127,17 @@ class RunDir:
             for k, v in metrics.items():
                 self.metrics.setdefault(k, []).append(v)
 
-    def write_row(self, log: CsvLog, row: dict, scalars: dict, frame: int):
-        """A row of train.csv or eval.csv, and its scalars as TensorBoard events."""
-        log.write(row)
+    def write_row(self, name: str, row: dict, scalars: dict, frame: int):
+        """A row of train.csv or eval.csv (the columns of its first row), and its scalars as TensorBoard events."""
+        path = os.path.join(self.path, name)
+        if name not in self.fields and os.path.exists(path):
+            with open(path, newline="") as f:
+                self.fields[name] = next(csv.reader(f), None)
+        with storing(path), open(path, "a", newline="") as f:
+            if self.fields.get(name) is None:
+                self.fields[name] = list(row)
+                csv.writer(f).writerow(row)
+            csv.DictWriter(f, self.fields[name], extrasaction="ignore").writerow(row)
         for tag, value in scalars.items() if self.writer else ():
             self.writer.add_scalar(tag, value, frame)
 
@@ -1193,7 +1159,7 @@ class RunDir:
         row.update({k: means.get(k, "") for k in self.agent.metric_names})
         row.update({"fps": round(self.console.progress.fps, 2), "wall_time": round(time.time() - self.start_time, 2)})
         scalars = {"train/return": ep_return, **{f"train/{k}": v for k, v in means.items()}}
-        self.write_row(self.train_log, row, scalars, frame)
+        self.write_row("train.csv", row, scalars, frame)
         self.console.show_episode(frame, episode, ep_return, self.next_eval())
         self.metrics = {}
 
@@ -1237,6 +1203,6 @@ class RunDir:
             if warning := self.low_iou.see(learned_iou, frame):
                 cli.warn(warning)
         scalars = {"eval/return": row["return"], **{f"eval/{name}": v for name, v in scores.items()}}
-        self.write_row(self.eval_log, row, scalars, frame)
+        self.write_row("eval.csv", row, scalars, frame)
         self.console.say_eval(frame, row, scores, seconds)
         return True
