@@ -315,9 +315,8 @@ def init_source(cfg, run, action_dim):
         # The actor's last layer maps to the actions: its output size is the source's action size.
         source_dim = [v for k, v in state["agent"]["actor"].items() if k.endswith(".weight")][-1].shape[0]
         if source_dim != action_dim:
-            raise cli.ConfigError(f"--init-parts all: the source run's actor has {source_dim} "
-                                  f"actions, {cfg.env} has {action_dim}; copy encoder or "
-                                  "encoder+decoders instead")
+            raise cli.ConfigError(f"--init-parts all: the source run's actor has {source_dim} actions, {cfg.env} has "
+                                  f"{action_dim}; copy encoder or encoder+decoders instead")
     return state["agent"]
 
 
@@ -580,10 +579,9 @@ class Progress:
             # a terminal with a size (tqdm hides its bar on one without, a pty of `script`)
             tty = sys.stdout.isatty() and shutil.get_terminal_size((0, 0)).lines > 0
             self.bar = tqdm.tqdm(  # shows its first line
-                total=max(self.total, frame), initial=frame, desc=line, position=0, leave=tty,
-                bar_format=self.LINE.replace("{bar}", "{bar:12} " if tty else ""),
-                file=sys.stdout if tty else Lines(), dynamic_ncols=tty, miniters=0,
-                mininterval=min(self.every, 1.0) if tty else self.every)
+                total=max(self.total, frame), initial=frame, desc=line, position=0, leave=tty, miniters=0,
+                bar_format=self.LINE.replace("{bar}", "{bar:12} " if tty else ""), dynamic_ncols=tty,
+                file=sys.stdout if tty else Lines(), mininterval=min(self.every, 1.0) if tty else self.every)
             return
         self.bar.total = max(self.bar.total, frame)  # a budget no multiple of the action repeat
         self.bar.set_description_str(line, refresh=False)
@@ -639,9 +637,8 @@ class Health:
             self.q.append(abs(metrics["q"]))
         if self.updates % self.EVERY:
             return []
-        fired = [(kind, message) for kind, check in (("actor collapsed", self.collapsed),
-                                                     ("critic diverging", self.diverging))
-                 if kind not in self.warned and (message := check())]
+        fired = [(kind, message) for kind, check in (("actor collapsed", self.collapsed), ("critic diverging",
+                 self.diverging)) if kind not in self.warned and (message := check())]
         self.warned.update(kind for kind, _ in fired)
         return fired
 
@@ -654,20 +651,19 @@ class Health:
         saturated, spread = np.mean(self.saturated), np.mean(self.spread)
         if saturated < self.SATURATED or spread > self.SPREAD:
             return None
-        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates "
-                f"{saturated:.1%} of its mean actions sat at exactly +-1 (actor_saturated) and "
-                f"they spread {spread:.2g} over the batch (action_spread): one action in every "
-                "state, where tanh passes no gradient back. Such runs rarely recover: "
-                "docs/health.md")
+        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates {saturated:.1%} of its mean "
+                f"actions sat at exactly +-1 (actor_saturated) and they spread {spread:.2g} over the batch "
+                "(action_spread): one action in every state, where tanh passes no gradient back. Such runs rarely "
+                "recover: docs/health.md")
 
     def diverging(self) -> str | None:
         median = float(np.median(self.q)) if len(self.q) == self.DIVERGE_WINDOW else 0.0
         if median <= self.DIVERGE_FACTOR * self.q_bound():
             return None
-        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is "
-                f"{median:.3g}, more than {self.DIVERGE_FACTOR:g} x the largest return any policy "
-                f"can have here ({self.reward_scale:.3g} per step / (1 - {self.discount:g}) = "
-                f"{self.q_bound():.3g}); the run will not learn (too high a --lr?): docs/health.md")
+        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is {median:.3g}, "
+                f"more than {self.DIVERGE_FACTOR:g} x the largest return any policy can have here "
+                f"({self.reward_scale:.3g} per step / (1 - {self.discount:g}) = {self.q_bound():.3g}); the run will "
+                "not learn (too high a --lr?): docs/health.md")
 
 
 @dataclass
@@ -782,9 +778,8 @@ class Console:
                    if p.episode_bound() else "at most one episode, not timed yet in this process")
         if not self.evaluating:
             return f"the next episode end ({episode}), with a snapshot"
-        bound = (f"at most ~{duration(math.ceil(longest))}, measured" if longest else
-                 f"not timed yet: the first of this process, at step {self.eval_step} after "
-                 f"{duration(p.clock() - self.episode_began)}")
+        bound = (f"at most ~{duration(math.ceil(longest))}, measured" if longest else f"not timed yet: the first of "
+                 f"this process, at step {self.eval_step} after {duration(p.clock() - self.episode_began)}")
         then = (f", then the end of the training episode under way ({episode})"
                 if mid_episode and frame < self.cfg.frames else "")
         return (f"the end of this evaluation episode ({bound}){then}, with a snapshot; the "
@@ -879,9 +874,8 @@ class RunDir:
         print(f"disk: snapshot.pt {size(snapshot)}" + (f", buffer.npz up to {size(buffer)}" if with_buffer else "")
               + f"; {size(free)} free in {self.path}")
         if free < snapshot:
-            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run "
-                                  f"takes {size(snapshot)}: free some space, or give --run-root on "
-                                  "a larger disk")
+            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run takes "
+                                  f"{size(snapshot)}: free some space, or give --run-root on a larger disk")
         if free < more:
             cli.warn(f"{self.path}: {size(free)} free, but this run's files need up to {size(more)} more (two "
                      f"snapshot.pt of {size(snapshot)} while one replaces the other"
@@ -891,17 +885,16 @@ class RunDir:
     def restore(self) -> tuple[Counters, float]:
         """The resumed snapshot's weights, RNG states and replay buffer (where buffer.npz holds it, else the buffer
         refills); rows logged after it go to side files. Returns its counters and wall time."""
-        state, buffer = self.resumed, os.path.join(self.path, "buffer.npz")
+        state, rng, buffer = self.resumed, self.resumed["rng"], os.path.join(self.path, "buffer.npz")
         load_agent(self.agent, state["agent"], self.cfg, "--resume")
-        random.setstate(state["rng"]["python"])
-        np.random.set_state(state["rng"]["numpy"])
-        torch.set_rng_state(state["rng"]["torch"])
-        if state["rng"]["cuda"] is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state["rng"]["cuda"])
+        random.setstate(rng["python"])
+        np.random.set_state(rng["numpy"])
+        torch.set_rng_state(rng["torch"])
+        if rng["cuda"] is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
         if "rng" not in state["agent"]:  # before the agent had its own generator: torch's stream was it
-            old = state["rng"]["torch"] if self.agent.device.type == "cpu" else \
-                state["rng"]["cuda"][self.agent.device.index or 0]
-            self.agent.rng.set_state(old)
+            self.agent.rng.set_state(rng["torch"] if self.agent.device.type == "cpu" else
+                                     rng["cuda"][self.agent.device.index or 0])
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]
         # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the loop owned its
@@ -1100,8 +1093,8 @@ class RunDir:
             return (line + f"; the last snapshot (frame {self.snapshot_frame}) stands: python sear.py --resume "
                     f"{self.group or self.path} continues from it (with --save-buffer it replays the same updates): "
                     "docs/health.md")
-        return (line + f"; {self.no_snapshot(removed)}; start again with other settings (a lower --lr, smaller loss "
-                "weights): docs/health.md")
+        return (line + f"; {self.no_snapshot(removed)}; start again with other settings (a lower --lr, smaller "
+                "loss weights): docs/health.md")
 
     # --- logs ---
     def log_update(self, metrics: dict):
