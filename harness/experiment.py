@@ -164,8 +164,7 @@ class EvalWatch:
             self.video.append_data(np.concatenate([self.label_strip, big], axis=0))
 
     def finish(self) -> dict:
-        """Scores the frames still pending and closes the video. Returns the metrics' means over frames (for the
-        IoU, over the frames where robot or prediction is present)."""
+        """The metrics' means over frames (the IoU's where robot or prediction is present); closes the video."""
         self.flush()
         if self.video is not None:
             with storing(self.video_path):
@@ -516,8 +515,7 @@ class Progress:
             self.tick_time += seconds
 
     def measure(self, frame):
-        """After every env step; a step counts towards the learning speed when the warm-up updates were done before
-        it began."""
+        """After every env step: a step counts towards the learning speed when the warm-up was done before it."""
         now = self.clock()
         if self.tick_time is not None and self.tick_updates >= self.WARMUP:
             self.learn_frames += frame - self.tick_frame
@@ -572,8 +570,7 @@ class Progress:
                 f"about {duration(left / fps + evals * per_eval)} in all")
 
     def show(self, frame, text, eta, force=False):
-        """The line, at most every `every` seconds (at least every second on a terminal: tqdm's mininterval), or now
-        (force: an episode's end)."""
+        """The line, at most every `every` seconds (on a terminal at least every second), or now (force)."""
         line = " | ".join([f"{self.fps:.1f} fps", f"ETA {duration(eta)}", text, *self.flags])
         if self.bar is None:  # made where stdout is now (a seed group redirects it)
             # a terminal with a size (tqdm hides its bar on one without, a pty of `script`)
@@ -624,8 +621,7 @@ class Health:
             self.reward_scale = max(self.reward_scale, float(np.abs(rewards).max()))
 
     def check(self, metrics: dict) -> list[tuple[str, str]]:
-        """One update's metrics: raises cli.NonFinite on a value that is not finite; returns the warnings (short
-        flag, full line) that fire for the first time."""
+        """One update's metrics: cli.NonFinite on a value not finite, else the warnings (flag, line) firing first."""
         self.updates += 1
         for name, value in metrics.items():
             if not math.isfinite(value):
@@ -751,8 +747,7 @@ class Console:
         p.show(frame, text, p.eta(frame, next_eval, (done, spent)))
 
     def end_eval(self, frame, episodes: int) -> float:
-        """The evaluation has ended after `episodes`, whole or cut short; off the training-speed clock. Returns its
-        seconds."""
+        """The evaluation ended after `episodes`, whole or cut short: its seconds, off the training-speed clock."""
         p, now = self.progress, self.progress.clock()
         if episodes > self.eval_episode:  # its last episode ran to its end
             p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
@@ -883,8 +878,8 @@ class RunDir:
                      + "): it will stop on a full disk before its end, its last snapshot standing")
 
     def restore(self) -> tuple[Counters, float]:
-        """The resumed snapshot's weights, RNG states and replay buffer (where buffer.npz holds it, else the buffer
-        refills); rows logged after it go to side files. Returns its counters and wall time."""
+        """The resumed snapshot's weights, RNG states and buffer.npz (else the buffer refills), rows logged after it
+        set aside; returns its counters and wall time."""
         state, rng, buffer = self.resumed, self.resumed["rng"], os.path.join(self.path, "buffer.npz")
         load_agent(self.agent, state["agent"], self.cfg, "--resume")
         random.setstate(rng["python"])
