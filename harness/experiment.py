@@ -633,8 +633,8 @@ class Health:
             self.q.append(abs(metrics["q"]))
         if self.updates % self.EVERY:
             return []
-        fired = [(kind, message) for kind, check in (("actor collapsed", self.collapsed), ("critic diverging",
-                 self.diverging)) if kind not in self.warned and (message := check())]
+        checks = (("actor collapsed", self.collapsed), ("critic diverging", self.diverging))
+        fired = [(kind, message) for kind, check in checks if kind not in self.warned and (message := check())]
         self.warned.update(kind for kind, _ in fired)
         return fired
 
