@@ -267,7 +267,7 @@ def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=
                 if final:
                     break
                 # every --snapshot-minutes, at an episode's end (not where the run starts)
-                fresh = frame in (0, lead.files.snapshot_frame)
+                fresh = frame in (0, lead.snapshot_frame)
                 if not fresh and time.monotonic() - clock >= 60 * run.snapshot_minutes:
                     runs.snapshot()
                     clock = time.monotonic()

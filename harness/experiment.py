@@ -1,14 +1,9 @@
-"""What sear.py's training loop calls besides the algorithm: the envs a config describes, the run
-directory (config.json, train.csv / eval.csv and TensorBoard, snapshots with the replay buffer
-beside them, resume and its side files, one owner at a time, atomic writes and storage errors in one
-line, what a Ctrl-C or SIGTERM leaves), the progress line and its ETA, the health checks of every
-update (docs/health.md), the evaluation's decoder metrics and videos, --evaluate's scores, the
-background sampler, and transfer (--init-from).
+"""What train.py's loop calls besides the algorithm: the envs' settings, the evaluation's decoder metrics and videos,
+--evaluate, the replay buffer's file, --init-from, and the run directory (config.json, the CSVs and TensorBoard,
+snapshots, resume, one owner, what a stop leaves) with its progress line and the health checks of every update.
 
-Layering: imports cli.py, and lazily envs.py and segment.py (so that `import sear` needs only torch,
-numpy and the standard library); never sear.py, whose agent, buffer and config it receives as
-arguments.
-"""
+Imports cli.py, and lazily envs.py and segment.py (`import sear` needs only torch, numpy and the standard library);
+never sear.py, whose agent, buffer and config it receives as arguments."""
 from __future__ import annotations
 
 import collections
@@ -34,60 +29,45 @@ from harness import cli
 from harness.cli import arg, storing, torch_save, write_atomically
 
 
-# ================================================================================================
-# Envs: the run's train and eval env, as its config describes them
-# ================================================================================================
 @dataclass
 class EnvConfig:
-    """The envs' settings of sear.Config (which inherits them): masks, Distracting Control,
-    rendering."""
-    mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background",
-                            low=0, high=1, acts="mask", group="robot masks")
-    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian "
-                                   "blur (sigma 0.5), threshold 0.9 (envs.approximate_mask)",
+    """The envs' settings of sear.Config (which inherits them): masks, Distracting Control, rendering."""
+    mask_noise: float = arg(0.0, "probability that a robot pixel of the mask is set to background", low=0, high=1,
                             acts="mask", group="robot masks")
-    mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) "
-                                           "| stride (authors')", ("majority", "stride"),
-                               envs="manipulation", acts="mask", group="robot masks")
-    mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a "
-                                  "segment.py model applied to every frame gives every mask target "
-                                  "and RGBM's input mask; --mask-noise / --mask-approx then "
-                                  "corrupt its masks)", metavar="sim|learned:PATH", acts="mask",
+    mask_approx: bool = arg(False, "use approximate masks: the authors' 3x down / up, Gaussian blur (sigma 0.5), "
+                                   "threshold 0.9 (envs.approximate_mask)", acts="mask", group="robot masks")
+    mask_downsample: str = arg("majority", "manipulation suites' 252->84 mask: majority (3x3 vote) | stride "
+                                           "(authors')", ("majority", "stride"), envs="manipulation", acts="mask",
+                               group="robot masks")
+    mask_source: str = arg("sim", "sim (the simulator's segmentation render) | learned:PATH (a segment.py model "
+                                  "applied to every frame gives every mask target and RGBM's input mask; --mask-noise "
+                                  "/ --mask-approx then corrupt its masks)", metavar="sim|learned:PATH", acts="mask",
                            group="robot masks")
-    learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's "
-                                       "mask in evaluation episodes only to report the learned "
-                                       "masks' IoU (eval.csv learned_mask_iou), never as a target; "
-                                       "--no-learned-mask-iou never renders one",
+    learned_mask_iou: bool = arg(True, "with --mask-source learned:PATH, render the simulator's mask in evaluation "
+                                       "episodes only to report the learned masks' IoU (eval.csv learned_mask_iou), "
+                                       "never as a target; --no-learned-mask-iou never renders one",
                                  when="learned masks", acts="mask")
-    backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py "
-                               "--fetch-davis), a DAVIS or image folder, or '' = built-in "
-                               "procedural images (not the paper's)", metavar="davis|DIR",
-                           envs="distracting", group="the suites")
-    difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all "
-                                    "backgrounds (authors: medium)", ("easy", "medium", "hard"),
-                          envs="distracting", group="the suites")
-    render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no "
-                                       "multisampling)", ("paper", "fast"), group="the suites")
-    pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, "
-                                     "under DrQ-v2's curves: 0.8% less about the hinge)",
-                            ("exact", "2021"), envs="cartpole", group="the suites")
-    camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset "
-                                         "scale (original: 0.1-0.3)", low=0, high=1,
-                                    envs="distracting", group="the suites")
-    color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift "
-                                        "(original: 0.1-0.3)", low=0, high=1, envs="distracting",
-                                   group="the suites")
-    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their "
-                                       "6 views per episode)", ("fixed", "random"), envs="kitchen",
-                              group="the suites")
+    backgrounds: str = arg("", "Distracting Control: davis (the paper's DAVIS-2017: python envs.py --fetch-davis), a "
+                               "DAVIS or image folder, or '' = built-in procedural images (not the paper's)",
+                           metavar="davis|DIR", envs="distracting", group="the suites")
+    difficulty: str = arg("medium", "Distracting Control: easy | medium | hard = 4 | 8 | all backgrounds (authors: "
+                                    "medium)", ("easy", "medium", "hard"), envs="distracting", group="the suites")
+    render_quality: str = arg("paper", "paper (suite's own shadows) | fast (no shadows, no multisampling)",
+                              ("paper", "fast"), group="the suites")
+    pole_inertia: str = arg("exact", "cartpole: exact (MuJoCo 3's capsule) | 2021 (MuJoCo 2.0's, under DrQ-v2's "
+                                     "curves: 0.8% less about the hinge)", ("exact", "2021"), envs="cartpole",
+                            group="the suites")
+    camera_distraction: float = arg(0.0, "Distracting Control, beyond the paper: camera offset scale (original: "
+                                         "0.1-0.3)", low=0, high=1, envs="distracting", group="the suites")
+    color_distraction: float = arg(0.0, "Distracting Control, beyond the paper: robot colour shift (original: "
+                                        "0.1-0.3)", low=0, high=1, envs="distracting", group="the suites")
+    kitchen_camera: str = arg("fixed", "Kitchen: fixed (the authors' view) | random (one of their 6 views per "
+                                       "episode)", ("fixed", "random"), envs="kitchen", group="the suites")
 
 
-# ================================================================================================
-# Evaluation: what the decoders make of the eval env's frames (metrics and videos)
-# ================================================================================================
+# --- Evaluation: what the decoders make of the eval env's frames (metrics and videos) ------------------------------
 def mask_iou(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
-    """Per frame, the intersection over union of two binary masks (B, H, W) -> (B,). NaN where both
-    are empty: with no robot in view and none predicted there is nothing to score."""
+    """Per frame, the IoU of two binary masks (B, H, W) -> (B,); NaN where both are empty (nothing to score)."""
     pred, true = pred.bool().flatten(1), true.bool().flatten(1)
     return (pred & true).sum(1) / (pred | true).sum(1)
 
@@ -99,25 +79,17 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 class EvalWatch:
-    """What the decoders make of an evaluation's observations, seed by seed (train.evaluate shows it
-    every observation of its seed).
-
-    Every SCORE_EVERY-th observation (counting each reset and step of all evaluation episodes) is
-    encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its newest frame is
-    scored. Mask decoder: IoU of sigmoid > 0.5 against the true mask and the BCE per pixel, where the
-    env renders masks (METHODS[m].uses_mask; the mask the decoder is trained on, so with --mask-noise
-    or --mask-approx the corrupted one). Reconstruction decoder: PSNR on the [0, 1] image, after the
-    [-0.5, 0.5] clamp of the loss. finish() gives the means over frames. With a video path the first
-    episode is also written as an MP4, the panels side by side: camera | true mask | predicted mask
-    (the sigmoid, grey) | reconstruction, each only where the method has it."""
+    """What the decoders make of an evaluation's observations (train.evaluate shows it each of its seed's). Every
+    SCORE_EVERY-th observation is encoded as the actor sees it, unaugmented, and decoded, in batches of BATCH; its
+    newest frame is scored: the mask decoder's IoU of sigmoid > 0.5 and BCE per pixel against the mask it is trained
+    on (where the env renders one), the reconstruction's PSNR after the loss's [-0.5, 0.5] clamp. With a video path
+    the first episode is also an MP4: camera | true mask | predicted mask | reconstruction, where the method has it."""
 
     BATCH = 32
-    # Encoding and decoding a frame again costs about half of a fast-render evaluation step on CPU
-    # (EXPERIMENTS.md, "Inspection"); neighbouring frames differ little, so a tenth of them (~500
-    # frames per default evaluation) gives the same means at a tenth of the cost.
+    # Encoding and decoding a frame again costs about half of a fast-render evaluation step on CPU (EXPERIMENTS.md,
+    # "Inspection"); neighbouring frames differ little, so a tenth of them gives the same means at a tenth of the cost.
     SCORE_EVERY = 10
-    # nearest upscaling, 84 -> 336 px: visible, and a multiple of ffmpeg's 16-px macro blocks
-    SCALE = 4
+    SCALE = 4  # nearest upscaling, 84 -> 336 px: visible, and a multiple of ffmpeg's 16-px macro blocks
     LABEL = 16  # height of the strip that names the panels (336 + 16 = 22 x 16 again)
     FPS = 20
     METRICS = ("mask_iou", "mask_bce", "recon_psnr")
@@ -125,10 +97,8 @@ class EvalWatch:
     def __init__(self, agent, video_path: str | None = None):
         self.agent, self.video_path = agent, video_path
         self.decodes = agent.aux.decodes if agent.aux is not None else ()
-        # mask-free methods' envs skip the segmentation render
-        self.true_mask = agent.method.uses_mask
-        self.pending, self.values, self.episode, self.seen, self.video = [], {}, -1, 0, None
-        self.label_strip = None  # the panels' names, drawn when the video starts
+        self.true_mask = agent.method.uses_mask  # mask-free methods' envs skip the segmentation render
+        self.pending, self.values, self.episode, self.seen, self.video, self.label_strip = [], {}, -1, 0, None, None
 
     def see(self, obs, new_episode=False):
         """An observation of the eval env (a stack: pixels and masks); new_episode at a reset."""
@@ -153,15 +123,11 @@ class EvalWatch:
         panels = {"camera": pixels[:, -3:] / 255.0}  # the newest frame of each stack, in [0, 1]
         if self.true_mask:
             panels["true mask"] = true
-        decoded = {}
-        if self.decodes:
-            latent = agent.encoder(pixels)  # no random shift at evaluation
-            decoded = agent.aux.decode(latent)
+        decoded = agent.aux.decode(agent.encoder(pixels)) if self.decodes else {}  # no random shift at evaluation
         if "mask" in decoded:
             logits = decoded["mask"][:, -1].float()
             panels["predicted mask"] = torch.sigmoid(logits)
-            if self.true_mask:
-                # sigmoid > 0.5 <=> logit > 0
+            if self.true_mask:  # sigmoid > 0.5 <=> logit > 0
                 self.add("mask_iou", mask_iou(logits > 0, true)[scored])
                 bce = F.binary_cross_entropy_with_logits(logits, true, reduction="none")
                 self.add("mask_bce", bce.flatten(1).mean(1)[scored])
@@ -172,60 +138,46 @@ class EvalWatch:
             with storing(self.video_path):
                 self.film(panels, np.flatnonzero(filming))
 
-    # only the frames to score: films are decoded whole
     def add(self, name, per_frame: torch.Tensor):
         self.values.setdefault(name, []).extend(per_frame.tolist())
 
     def film(self, panels: dict, rows):
-        """Append frames `rows` of the batch to the video: panels side by side, upscaled,
-        labelled."""
+        """Frames `rows` of the batch onto the video: the panels side by side, upscaled, under their names."""
         import imageio.v2 as imageio  # imageio-ffmpeg brings the ffmpeg binary; needed only here
+        from PIL import Image, ImageDraw
         width = panels["camera"].shape[-1] * self.SCALE
         if self.video is None:
             os.makedirs(os.path.dirname(self.video_path), exist_ok=True)
             # One encoder thread: the video is a side job of an evaluation on a shared machine.
             self.video = imageio.get_writer(self.video_path, fps=self.FPS, codec="libx264", macro_block_size=16,
                                             ffmpeg_params=["-threads", "1"])
-            self.label_strip = label_strip(list(panels), width, self.LABEL)
+            names = Image.new("RGB", (width * len(panels), self.LABEL))
+            for i, label in enumerate(panels):
+                ImageDraw.Draw(names).text((i * width + 4, 2), label, fill=(255, 255, 255))
+            self.label_strip = np.asarray(names)
         side = [p if p.dim() == 4 else p.unsqueeze(1).expand(-1, 3, -1, -1) for p in panels.values()]
         strip = (torch.cat(side, dim=3)[rows] * 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
         for frame in strip:
             big = frame.repeat(self.SCALE, axis=0).repeat(self.SCALE, axis=1)
-            # a white rule between panels, drawn over their edge pixels
-            for k in range(1, len(panels)):
+            for k in range(1, len(panels)):  # a white rule between panels, over their edge pixels
                 big[:, k * width - 1:k * width + 1] = 255
             self.video.append_data(np.concatenate([self.label_strip, big], axis=0))
 
     def finish(self) -> dict:
-        """Score the frames still pending and close the video. Returns the metrics' means over
-        frames (for the IoU, over the frames where robot or prediction is present)."""
+        """The metrics' means over frames (the IoU's where robot or prediction is present); closes the video."""
         self.flush()
         if self.video is not None:
             with storing(self.video_path):
                 self.video.close()
             self.video = None
-        scores = {}
-        for name in self.METRICS:
-            values = [v for v in self.values.get(name, ()) if not math.isnan(v)]
-            if name in self.values:
-                scores[name] = float(np.mean(values)) if values else float("nan")
-        return scores
-
-
-def label_strip(labels: list[str], panel_width: int, height: int) -> np.ndarray:
-    """A black strip (height, panel_width * len(labels), 3) uint8 with each panel's name in
-    white."""
-    from PIL import Image, ImageDraw
-    strip = Image.new("RGB", (panel_width * len(labels), height))
-    draw = ImageDraw.Draw(strip)
-    for i, label in enumerate(labels):
-        draw.text((i * panel_width + 4, 2), label, fill=(255, 255, 255))
-    return np.asarray(strip)
+        kept = {name: [v for v in self.values[name] if not math.isnan(v)] for name in self.METRICS
+                if name in self.values}
+        return {name: float(np.mean(values)) if values else float("nan") for name, values in kept.items()}
 
 
 def eval_columns(episodes) -> dict:
-    """eval.csv's success rate (where the env reports success) and, for a task set, each task's mean
-    return and success rate. `episodes`: sear.evaluate()'s."""
+    """eval.csv's success rate (where the env reports success) and, for a task set, each task's mean return and
+    success rate. `episodes`: sear.evaluate()'s."""
     row = {}
     successes = [float(e.success) for e in episodes if e.success is not None]
     if successes:
@@ -237,28 +189,23 @@ def eval_columns(episodes) -> dict:
     return row
 
 
-# ================================================================================================
-# --evaluate: a snapshot scored on its eval env, nothing written but a new video
-# ================================================================================================
+# --- --evaluate: a snapshot scored on its eval env, nothing written but a new video --------------------------------
 def load_agent(agent, state: dict, cfg, flag: str) -> None:
-    """A snapshot's agent state into `agent`. One that this sear.py cannot take (a curl run from
-    before CURL followed curl_sac.py: its networks differ) is one line."""
+    """A snapshot's agent state into `agent`; one this sear.py cannot take (a curl run from before CURL followed
+    curl_sac.py: its networks differ) is one line."""
     try:
         agent.load_state_dict(state)
-    # names, shapes or optimiser groups that differ
-    except (RuntimeError, KeyError, ValueError) as e:
+    except (RuntimeError, KeyError, ValueError) as e:  # names, shapes or optimiser groups that differ
         first = str(e).strip().splitlines()[0][:120] if str(e).strip() else type(e).__name__
         raise cli.ConfigError(f"{flag}: the snapshot's {cfg.method} networks do not fit this "
                               f"sear.py's (saved by an older version?): {first}") from None
 
 
 def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, envs, evaluate) -> None:
-    """--evaluate RUN_DIR: `agent`, given the snapshot's weights, on the run's eval env (`envs`, one
-    seed's runenvs.SeedEnvs) for --eval-episodes episodes by train.evaluate, with the evaluations' own
-    reset seeds (the run's episode count gives eval.csv's row at the snapshot's frame again). Prints
-    the mean return (and success) with 95% CIs over the episodes, and the decoder metrics. Writes
-    nothing into the run but, with --save-video, a new videos/evaluate_<frame>[-k].mp4. Takes no
-    lock: a running run can be scored."""
+    """--evaluate RUN_DIR: the snapshot's agent on the run's eval env (one seed's runenvs.SeedEnvs) for --eval-episodes
+    episodes, with the evaluations' own reset seeds. Prints the mean return (and success) with 95% CIs and the decoder
+    metrics; writes nothing into the run but, with --save-video, a new video. Takes no lock: a running run can be
+    scored."""
     from harness import runenvs
     load_agent(agent, snapshot["agent"], cfg, "--evaluate")
     for message in cli.start_warnings(cfg, run, training=False):
@@ -288,15 +235,14 @@ def score_snapshot(cfg, run: cli.RunConfig, snapshot: dict, agent, envs, evaluat
     if successes:
         print("success " + rate_ci(successes))
     for name, value in {**{k: v for k, v in eval_columns(episodes).items() if "/" in k}, **scores}.items():
-        # task sets: return/<task>, success/<task>; the decoder metrics
-        print(f"  {name} {value:.3g}")
+        print(f"  {name} {value:.3g}")  # task sets' return/<task>, success/<task>; the decoder metrics
     if video:
         print(f"video: {video}")
 
 
 def claim_video(run_dir, frame) -> str:
-    """A new RUN_DIR/videos/evaluate_<frame>[-k].mp4, created empty (ffmpeg then writes it): an
-    existing video is never overwritten, not even by a second --evaluate started the same moment."""
+    """A new RUN_DIR/videos/evaluate_<frame>[-k].mp4, created empty (ffmpeg then writes it): an existing video is
+    never overwritten, not even by a second --evaluate started the same moment."""
     folder = os.path.join(run_dir, "videos")
     with storing(folder):
         os.makedirs(folder, exist_ok=True)
@@ -320,20 +266,17 @@ def mean_ci(values) -> str:
 
 
 def rate_ci(values) -> str:
-    """'0.60 (95% CI 0.31 to 0.83, 10 episodes)': Wilson interval of a success rate (a t interval of
-    0/1 values would say [1, 1] after ten successes)."""
+    """'0.60 (95% CI 0.31 to 0.83, 10 episodes)': Wilson interval of a success rate (a t interval of 0/1 values
+    would say [1, 1] after ten successes)."""
     from scipy import stats
     n, k = len(values), int(round(sum(values)))
     ci = stats.binomtest(k, n).proportion_ci(0.95, method="wilson")
     return f"{k / n:.2f} (95% CI {ci.low:.2f} to {ci.high:.2f}, {cli.plural(n, 'episode')})"
 
 
-# ================================================================================================
-# The replay buffer: where it lives, its sampler thread and its file
-# ================================================================================================
+# --- The replay buffer's file --------------------------------------------------------------------------------------
 def save_buffer(buffer, path):
-    """buffer.npz: the filled slots of the ring in physical order, and `t` (the episode index follows
-    from the `first` flags)."""
+    """buffer.npz: the filled slots of the ring in physical order, and `t` (episodes follow from the `first` flags)."""
     arrays = {name: getattr(buffer, name)[:len(buffer)].cpu().numpy() for name in buffer.ARRAYS}
     write_atomically(path, lambda f: np.savez(f, t=buffer.t, **arrays))
 
@@ -362,52 +305,41 @@ def saved_buffer_t(path):
         return int(data["t"])
 
 
-# ================================================================================================
-# Transfer (--init-from)
-# ================================================================================================
+# --- Transfer (--init-from) ----------------------------------------------------------------------------------------
 def init_source(cfg, run, action_dim):
-    """The agent state of the --init-from run, checked against this run (its config was checked by
-    cli.parse_args; the action size is known once the env is built). Called before the run dir
-    exists."""
+    """The agent state of the --init-from run, its actor checked against this env's action size (the config was
+    checked by cli.parse_args). Called before the run dir exists."""
     state = cli.load_snapshot(run.init_from, "--init-from", mmap=True)
     if run.init_parts == "all":
         # The actor's last layer maps to the actions: its output size is the source's action size.
         source_dim = [v for k, v in state["agent"]["actor"].items() if k.endswith(".weight")][-1].shape[0]
         if source_dim != action_dim:
-            raise cli.ConfigError(f"--init-parts all: the source run's actor has {source_dim} "
-                                  f"actions, {cfg.env} has {action_dim}; copy encoder or "
-                                  "encoder+decoders instead")
+            raise cli.ConfigError(f"--init-parts all: the source run's actor has {source_dim} actions, {cfg.env} has "
+                                  f"{action_dim}; copy encoder or encoder+decoders instead")
     return state["agent"]
 
 
 def copy_parts(agent, source: dict, parts: str) -> None:
-    """Load `parts` of a saved agent state (a snapshot's "agent") into a freshly built agent; the
-    other networks keep their fresh initialisation and the optimisers stay fresh (Adam's moments are
-    empty; the loads write into the parameters the optimisers already hold). "aux" is the method's
-    auxiliary networks: SEAR's two decoders, AE's and MAE's decoder, CURL's W and key encoder;
-    drq and rgbm have none. As in the authors' load_pretrained_weights, the target critic starts as
-    a copy of the loaded critic."""
+    """`parts` of a saved agent state (a snapshot's "agent") into a fresh agent; the rest and the optimisers stay
+    fresh. "aux": SEAR's two decoders, AE's and MAE's decoder, CURL's W and key encoder. As in the authors'
+    load_pretrained_weights, the target critic starts as a copy of the loaded critic."""
     names = cli.INIT_PARTS[parts]
     agent.encoder.load_state_dict(source["encoder"])
-    # an aux's own optimiser and counter (CURL's) stay fresh
-    if agent.aux is not None and "aux" in names:
+    if agent.aux is not None and "aux" in names:  # an aux's own optimiser and counter (CURL's) stay fresh
         fresh = {k: v for k, v in agent.aux.state_dict().items() if k.endswith("_extra_state")}
         agent.aux.load_state_dict({**source["aux"], **fresh})
     if "actor" in names:
         agent.actor.load_state_dict(source["actor"])
         agent.critic.load_state_dict(source["critic"])
         agent.critic_target.load_state_dict(agent.critic.state_dict())
-    # CURL's momentum key starts as a copy of what was loaded, as the target critic
-    if hasattr(agent.aux, "key"):
+    if hasattr(agent.aux, "key"):  # CURL's momentum key starts as a copy of what was loaded, as the target critic
         agent.aux.key.load_state_dict(agent.aux.query[0].state_dict())
 
 
-# ================================================================================================
-# The run directory
-# ================================================================================================
+# --- The run directory ---------------------------------------------------------------------------------------------
 def claim_new_path(base, suffix, make) -> str:
-    """base + suffix, or base-1 + suffix, base-2 + suffix, ...: the first that `make` creates. make
-    raises FileExistsError for a taken name, so two processes never claim the same path."""
+    """base + suffix, or base-1 + suffix, base-2 + suffix, ...: the first that `make` creates (it raises
+    FileExistsError for a taken name, so two processes never claim the same path)."""
     path, k = base + suffix, 1
     while True:
         try:
@@ -417,107 +349,57 @@ def claim_new_path(base, suffix, make) -> str:
             path, k = f"{base}-{k}{suffix}", k + 1
 
 
-class RunLock:
-    """One owner per run directory: an exclusive flock on RUN_DIR/run.lock, taken by a new run and
-    by
-    --resume before they write anything and held until the run ends. The kernel drops a flock when
-    its process dies, however it dies (kill -9, OOM, a lost node), so a leftover file never blocks;
-    the file holds the owner's pid and host, for the message of a process that is refused
-    (cli.lock_holder; cli.lock_owner asks without taking it)."""
-
-    def __init__(self, run_dir):
-        self.run_dir, self.path, self.fd = run_dir, os.path.join(run_dir, cli.LOCK_FILE), None
-        try:
-            import fcntl
-        except ImportError:  # not a POSIX system
-            cli.warn(f"cannot lock {run_dir} on this system: nothing stops a second process using "
-                     "it")
-            return
-        with storing(self.path):
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            owner = cli.lock_holder(fd)
-            os.close(fd)
-            raise cli.ConfigError(f"'{run_dir}' is in use by {owner}: a run directory has one "
-                                  f"owner; wait for it to end, or stop it, then resume") from None
-        # a file system without flock (Lustre mounted without -o flock: ENOSYS)
-        except OSError as e:
-            os.close(fd)
-            cli.warn(f"cannot lock {self.path} ({e.strerror}): nothing stops a second process "
-                     "using this run")
-            return
-        self.fd = fd
-        with storing(self.path):
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
-
-    def release(self):
-        if self.fd is not None:
-            os.close(self.fd)  # releases the lock
-            self.fd = None
-
-
-class CsvLog:
-    """Rows appended to a CSV whose header is fixed by the first row."""
-
-    def __init__(self, path):
-        self.path, self.fields = path, None
-        if os.path.exists(path):
-            with open(path, newline="") as f:
-                self.fields = next(csv.reader(f), None)
-
-    def write(self, row: dict):
-        with storing(self.path):
-            if self.fields is None:
-                with open(self.path, "w", newline="") as f:
-                    csv.writer(f).writerow(list(row))
-                self.fields = list(row)
-            with open(self.path, "a", newline="") as f:
-                csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
+def take_lock(run_dir) -> int | None:
+    """One owner per run directory: an exclusive flock on RUN_DIR/run.lock, held by the fd returned until the run
+    ends. The kernel drops a flock when its process dies, however it dies, so a leftover file never blocks; the file
+    holds the owner's pid and host for the message of a process refused (cli.lock_holder)."""
+    path = os.path.join(run_dir, cli.LOCK_FILE)
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        cli.warn(f"cannot lock {run_dir} on this system: nothing stops a second process using it")
+        return None
+    with storing(path):
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        owner = cli.lock_holder(fd)
+        os.close(fd)
+        raise cli.ConfigError(f"'{run_dir}' is in use by {owner}: a run directory has one "
+                              f"owner; wait for it to end, or stop it, then resume") from None
+    except OSError as e:  # a file system without flock (Lustre mounted without -o flock: ENOSYS)
+        os.close(fd)
+        cli.warn(f"cannot lock {path} ({e.strerror}): nothing stops a second process using this run")
+        return None
+    with storing(path):
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+    return fd
 
 
 def set_aside_rows_after(path, frame):
-    """On resume, rows logged after the snapshot describe steps that will be re-run. Keep them, in
-    a side file, and leave the main CSV consistent with the snapshot."""
+    """On resume, rows logged after the snapshot describe steps that will be re-run: they go to a side file, and the
+    main CSV stays consistent with the snapshot."""
     if not os.path.exists(path):
         return
     with open(path, newline="") as f:
-        rows = list(csv.reader(f))
-    if len(rows) < 2:
-        return
-    header, body = rows[0], rows[1:]
-    col = header.index("frame")
-    keep = [r for r in body if int(r[col]) <= frame]
-    later = [r for r in body if int(r[col]) > frame]
+        header, *body = [*csv.reader(f)] or [[]]
+    later = [r for r in body if int(r[header.index("frame")]) > frame]
     if not later:
         return
     side = f"{path[:-4]}.after_snapshot_{time.strftime('%Y%m%d-%H%M%S')}.csv"
     with storing(side), open(side, "w", newline="") as f:
         csv.writer(f).writerows([header, *later])
+    keep = [r for r in body if int(r[header.index("frame")]) <= frame]
     write_atomically(path, lambda f: csv.writer(f).writerows([header, *keep]), mode="w")
 
 
 def new_run_dir(root: str, name: str) -> str:
-    """root/name__<time>, made now; never an existing directory (and so never an existing run's),
-    even one another process made this second."""
+    """root/name__<time>, made now; never an existing directory, even one another process made this second."""
     base = os.path.join(root, f"{name}__{time.strftime('%Y%m%d-%H%M%S')}")
     with storing(base):
         return claim_new_path(base, "", os.makedirs)
-
-
-def rng_state():
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
-
-
-def set_rng_state(state):
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if state["cuda"] is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
 
 
 def size(n: float) -> str:
@@ -526,9 +408,8 @@ def size(n: float) -> str:
 
 
 def snapshot_bytes(agent) -> int:
-    """The size of snapshot.pt at its largest, from the agent's tensors: every network's state and,
-    for each parameter an optimiser trains, Adam's two moments (there from the first update on). RNG
-    states, counters and config add kilobytes."""
+    """snapshot.pt's size at its largest: every network's state and Adam's two moments of each parameter an optimiser
+    trains (RNG states, counters and config add kilobytes)."""
     networks = sum(t.numel() * t.element_size() for part in agent.state_dict().values()
                    if isinstance(part, dict) for t in part.values() if torch.is_tensor(t))
     moments = sum(2 * p.numel() * p.element_size() for opt in vars(agent).values()
@@ -537,8 +418,8 @@ def snapshot_bytes(agent) -> int:
 
 
 def compact(state):
-    """A state dict whose tensors own their memory: a view of a larger tensor (a seed's part of a
-    batched group's weights, harness/speed.py) is copied, so a snapshot holds this agent alone."""
+    """A state dict whose tensors own their memory: a view of a larger tensor (a seed's part of a batched group's
+    weights, harness/speed.py) is copied, so a snapshot holds this agent alone."""
     if isinstance(state, dict):
         return {k: compact(v) for k, v in state.items()}
     if torch.is_tensor(state) and state.untyped_storage().nbytes() > state.nbytes:
@@ -547,22 +428,13 @@ def compact(state):
 
 
 def save_snapshot(run_dir, payload):
-    """Write snapshot.pt atomically: a crash or a full disk mid-write leaves the previous snapshot
-    intact."""
+    """snapshot.pt, written atomically: a crash or a full disk mid-write leaves the previous one intact."""
     write_atomically(os.path.join(run_dir, "snapshot.pt"), lambda f: torch_save(payload, f))
 
 
-def tensorboard_writer(run_dir):
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-        return SummaryWriter(run_dir)
-    except Exception:  # tensorboard not installed: CSVs only
-        return None
-
-
 def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, cause="interrupted", removed=False):
-    """What is true after a Ctrl-C (or SIGTERM: `cause`): whether a snapshot exists, at which frame,
-    and the command that continues from it; with none, whether the run directory was `removed`."""
+    """What is true after a Ctrl-C (or SIGTERM: `cause`): whether a snapshot exists, at which frame, and the command
+    that continues from it; with none, whether the run directory was `removed`."""
     if run_dir is None:
         return f"{cause} before the run directory was made; nothing was saved"
     head = f"{cause} at frame {frame} ({where})"
@@ -578,22 +450,19 @@ def interrupt_message(run_dir, frame, where, snapshot_frame, snapshot_minutes, c
     return f"{head}: {run_dir} has no snapshot yet ({first}), so there is nothing to resume; start a new run"
 
 
-
-
 def duration(seconds: float) -> str:
     """'6d 19h', '21h 33m', '12m 05s', '7s'; 'measuring' while unknown (inf)."""
     if not math.isfinite(seconds):
         return "measuring"
-    s = max(0, round(seconds))
-    d, s = divmod(s, 86400)
+    d, s = divmod(max(0, round(seconds)), 86400)
     h, s = divmod(s, 3600)
     m, s = divmod(s, 60)
     return f"{d}d {h}h" if d else f"{h}h {m:02d}m" if h else f"{m}m {s:02d}s" if m else f"{s}s"
 
 
 class Lines:
-    """tqdm's file off a terminal (a log, SLURM, a pipe): each redraw of the bar a line of its own,
-    a clearing nothing; on the stdout of the moment (a seed group redirects it)."""
+    """tqdm's file off a terminal (a log, SLURM, a pipe): each redraw a line of its own, a clearing nothing; on the
+    stdout of the moment (a seed group redirects it)."""
 
     def write(self, text):
         if text := text.replace("\r", "").rstrip():
@@ -601,33 +470,26 @@ class Lines:
 
 
 class Progress:
-    """The progress line (docs/health.md): a tqdm bar over the frames, in place on a terminal, else
-    a line every `every` seconds. `fps`: the speed since the last episode end, time off training
-    left out (pause()). The ETA: the frames left at the speed of training WITH updates (the seed
-    phase says nothing of it), timed after WARMUP updates and standing once MEASURE_UPDATES over
-    MEASURE_SECONDS are, plus the evaluations left, the final one included; "measuring" until both
-    are timed. The longest episodes bound what a first SIGTERM waits for. A snapshot keeps the
-    speeds and lengths (state()) for a resumed run."""
+    """The progress line (docs/health.md): a tqdm bar over the frames, in place on a terminal, else a line every
+    `every` seconds. `fps`: the speed since the last episode end, time off training left out (pause()). The ETA: the
+    frames left at the speed of training with updates, timed after WARMUP updates and standing once MEASURE_UPDATES
+    over MEASURE_SECONDS are, plus the evaluations left, the final one included; "measuring" until both are timed. The
+    longest episodes bound what a first SIGTERM waits for. state() keeps speeds and lengths for a resumed run."""
 
     LINE = "frame {n}/{total} ({percentage:.1f}%) {bar}| {desc}"  # tqdm's; {bar} on a terminal
-
-    WARMUP = 2             # the first updates also build the kernels (oneDNN, cuDNN): not timed
-    MEASURE_UPDATES = 10   # the learning speed stands once this many updates after the warm-up ...
+    WARMUP = 2  # the first updates also build the kernels (oneDNN, cuDNN): not timed
+    MEASURE_UPDATES = 10  # the learning speed stands once this many updates after the warm-up ...
     MEASURE_SECONDS = 5.0  # ... and this many seconds of them are timed
 
     def __init__(self, total, every, eval_every, saved: dict | None = None, clock=None):
         self.total, self.every, self.eval_every = total, every, eval_every
-        self.clock = clock or time.time
-        self.bar = None  # the tqdm line, from the first show()
-        self.fps = 0.0
-        self.eval_seconds = []  # each evaluation of this process
-        self.saved = saved or {}  # the snapshot's state()
+        self.clock, self.saved = clock or time.time, saved or {}  # saved: the snapshot's state()
+        self.bar, self.fps, self.eval_seconds, self.cost_said = None, 0.0, [], False
         self.updates = 0  # of this process (RunDir.log_update)
         self.learn_frames, self.learn_seconds = 0, 0.0  # timed training with updates
         self.tick_time, self.tick_frame, self.tick_updates = None, 0, 0
         self.window_start, self.window_frame = self.clock(), 0
         self.flags: list[str] = []  # health warnings, at the end of every line
-        self.cost_said = False
         self.longest = {name: self.saved.get(name) or 0 for name in (  # this process's or saved
             "episode_frames", "episode_seconds", "eval_episode_seconds", "eval_episode_steps")}
 
@@ -639,8 +501,8 @@ class Progress:
         self.longest.update({k: max(v, self.longest[k]) for k, v in lengths.items()})
 
     def episode_bound(self) -> float | None:
-        """Seconds a training episode takes at most, as measured: the longest one, or the most
-        frames one had at the slowest speed measured (learning, or the episode under way)."""
+        """Seconds a training episode takes at most, as measured: the longest one, or the most frames one had at the
+        slowest speed measured (learning, or the episode under way)."""
         now = self.fps if self.tick_frame > self.window_frame else math.inf
         slowest = min(self.learning_fps() or math.inf, now)
         frames = self.longest["episode_frames"] / slowest if 0 < slowest < math.inf else 0.0
@@ -653,8 +515,7 @@ class Progress:
             self.tick_time += seconds
 
     def measure(self, frame):
-        """After every env step; a step counts towards the learning speed when the warm-up updates
-        were done before it began."""
+        """After every env step: a step counts towards the learning speed when the warm-up was done before it."""
         now = self.clock()
         if self.tick_time is not None and self.tick_updates >= self.WARMUP:
             self.learn_frames += frame - self.tick_frame
@@ -663,8 +524,7 @@ class Progress:
         self.fps = (frame - self.window_frame) / max(now - self.window_start, 1e-9)
 
     def measured(self) -> bool:
-        return (self.updates >= self.WARMUP + self.MEASURE_UPDATES
-                and self.learn_seconds >= self.MEASURE_SECONDS)
+        return self.updates >= self.WARMUP + self.MEASURE_UPDATES and self.learn_seconds >= self.MEASURE_SECONDS
 
     def learning_fps(self) -> float | None:
         """Frames per second of training with updates: this process's once measured, else saved."""
@@ -684,9 +544,8 @@ class Progress:
         return max(0, math.ceil((self.total - next_eval) / self.eval_every)) + 1
 
     def eta(self, frame, next_eval, under_way=None):
-        """Seconds to the end of the budget, inf while a speed it needs is unknown. During an
-        evaluation, scheduled or final, `under_way` is (the fraction of it done, its seconds so
-        far): its rest at its own pace, the evaluations after it at their length."""
+        """Seconds to the end of the budget, inf while a speed it needs is unknown. During an evaluation `under_way`
+        is (the fraction of it done, its seconds so far): its rest at its own pace, those after it at their length."""
         fps, per_eval = self.learning_fps(), self.eval_length(*(under_way or ()))
         per_eval = math.inf if per_eval is None else per_eval
         train = 0.0 if frame >= self.total else (self.total - frame) / fps if fps else math.inf
@@ -702,28 +561,24 @@ class Progress:
             return None
         self.cost_said, fps, left = True, self.learning_fps(), max(0, self.total - frame)
         evals, per_eval = self.evals_left(next_eval), self.eval_length()
-        line = (f"cost on this device: {fps:.3g} frames/s with updates (timed over "
-                f"{self.updates - self.WARMUP} updates), so the {left:,} frames left take "
-                f"{duration(left / fps)}")
+        line = (f"cost on this device: {fps:.3g} frames/s with updates (timed over {self.updates - self.WARMUP} "
+                f"updates), so the {left:,} frames left take {duration(left / fps)}")
         evaluations = cli.plural(evals, "evaluation")
         if per_eval is None:
             return line + f", plus {evaluations} not timed yet"
-        total = duration(left / fps + evals * per_eval)
-        return (line + f", and the {evaluations} left {duration(evals * per_eval)} "
-                f"({duration(per_eval)} each): about {total} in all")
+        return (line + f", and the {evaluations} left {duration(evals * per_eval)} ({duration(per_eval)} each): "
+                f"about {duration(left / fps + evals * per_eval)} in all")
 
     def show(self, frame, text, eta, force=False):
-        """The line, at most every `every` seconds (at least every second on a terminal: tqdm's
-        mininterval), or now (force: an episode's end)."""
+        """The line, at most every `every` seconds (on a terminal at least every second), or now (force)."""
         line = " | ".join([f"{self.fps:.1f} fps", f"ETA {duration(eta)}", text, *self.flags])
         if self.bar is None:  # made where stdout is now (a seed group redirects it)
             # a terminal with a size (tqdm hides its bar on one without, a pty of `script`)
             tty = sys.stdout.isatty() and shutil.get_terminal_size((0, 0)).lines > 0
             self.bar = tqdm.tqdm(  # shows its first line
-                total=max(self.total, frame), initial=frame, desc=line, position=0, leave=tty,
-                bar_format=self.LINE.replace("{bar}", "{bar:12} " if tty else ""),
-                file=sys.stdout if tty else Lines(), dynamic_ncols=tty, miniters=0,
-                mininterval=min(self.every, 1.0) if tty else self.every)
+                total=max(self.total, frame), initial=frame, desc=line, position=0, leave=tty, miniters=0,
+                bar_format=self.LINE.replace("{bar}", "{bar:12} " if tty else ""), dynamic_ncols=tty,
+                file=sys.stdout if tty else Lines(), mininterval=min(self.every, 1.0) if tty else self.every)
             return
         self.bar.total = max(self.bar.total, frame)  # a budget no multiple of the action repeat
         self.bar.set_description_str(line, refresh=False)
@@ -744,19 +599,11 @@ class Progress:
 
 
 class Health:
-    """What every update's metrics say (RunDir.log_update), beyond the numbers in train.csv.
-
-    A loss or Q that is not a finite number stops the run (cli.NonFinite), before the next action
-    reaches the simulator; an action that is not finite stops it too (runenvs.check_finite, the last
-    guard). Two warnings, each given once, on the progress line and stderr (docs/health.md, which
-    also says how the thresholds were chosen from the runs of EXPERIMENTS.md):
-    - the actor has collapsed: over the last COLLAPSE_WINDOW updates, on average at least SATURATED
-      of the batch's mean-action entries at exactly +-1 (actor_saturated) and their spread over the
-      batch at most SPREAD (action_spread): one action in every state, at the bound, where tanh
-      passes no gradient;
-    - the critic diverges: the median |Q| of the last DIVERGE_WINDOW updates is more than
-      DIVERGE_FACTOR times the largest return any policy can have, max |reward per agent step| seen
-      / (1 - discount) (rewards of at least 1 per step assumed until larger ones are seen)."""
+    """What every update's metrics say (RunDir.read_updates), beyond the numbers in train.csv: a loss or Q that is not
+    finite stops the run (cli.NonFinite) before the next action reaches the simulator; two warnings, each given once
+    on the progress line and stderr, say that the actor has collapsed and that the critic diverges (the largest return
+    any policy can have assumes rewards of at least 1 per step until larger ones are seen). docs/health.md says how
+    the thresholds were chosen from the runs of EXPERIMENTS.md."""
 
     COLLAPSE_WINDOW, SATURATED, SPREAD = 500, 0.99, 1e-3
     DIVERGE_WINDOW, DIVERGE_FACTOR = 100, 2.0
@@ -773,12 +620,8 @@ class Health:
         if len(rewards):
             self.reward_scale = max(self.reward_scale, float(np.abs(rewards).max()))
 
-    def q_bound(self) -> float:
-        return self.reward_scale / (1.0 - self.discount) if self.discount < 1 else math.inf
-
     def check(self, metrics: dict) -> list[tuple[str, str]]:
-        """One update's metrics: raises cli.NonFinite on a value that is not finite; returns the
-        warnings (short flag, full line) that fire for the first time."""
+        """One update's metrics: cli.NonFinite on a value not finite, else the warnings (flag, line) firing first."""
         self.updates += 1
         for name, value in metrics.items():
             if not math.isfinite(value):
@@ -790,11 +633,13 @@ class Health:
             self.q.append(abs(metrics["q"]))
         if self.updates % self.EVERY:
             return []
-        fired = [(kind, message) for kind, check in (("actor collapsed", self.collapsed),
-                                                     ("critic diverging", self.diverging))
-                 if kind not in self.warned and (message := check())]
+        checks = (("actor collapsed", self.collapsed), ("critic diverging", self.diverging))
+        fired = [(kind, message) for kind, check in checks if kind not in self.warned and (message := check())]
         self.warned.update(kind for kind, _ in fired)
         return fired
+
+    def q_bound(self) -> float:
+        return self.reward_scale / (1.0 - self.discount) if self.discount < 1 else math.inf
 
     def collapsed(self) -> str | None:
         if len(self.saturated) < self.COLLAPSE_WINDOW:
@@ -802,197 +647,33 @@ class Health:
         saturated, spread = np.mean(self.saturated), np.mean(self.spread)
         if saturated < self.SATURATED or spread > self.SPREAD:
             return None
-        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates "
-                f"{saturated:.1%} of its mean actions sat at exactly +-1 (actor_saturated) and "
-                f"they spread {spread:.2g} over the batch (action_spread): one action in every "
-                "state, where tanh passes no gradient back. Such runs rarely recover: "
-                "docs/health.md")
+        return (f"the actor has collapsed: over the last {self.COLLAPSE_WINDOW} updates {saturated:.1%} of its mean "
+                f"actions sat at exactly +-1 (actor_saturated) and they spread {spread:.2g} over the batch "
+                "(action_spread): one action in every state, where tanh passes no gradient back. Such runs rarely "
+                "recover: docs/health.md")
 
     def diverging(self) -> str | None:
         median = float(np.median(self.q)) if len(self.q) == self.DIVERGE_WINDOW else 0.0
         if median <= self.DIVERGE_FACTOR * self.q_bound():
             return None
-        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is "
-                f"{median:.3g}, more than {self.DIVERGE_FACTOR:g} x the largest return any policy "
-                f"can have here ({self.reward_scale:.3g} per step / (1 - {self.discount:g}) = "
-                f"{self.q_bound():.3g}); the run will not learn (too high a --lr?): docs/health.md")
+        return (f"the critic diverges: the median |Q| of the last {self.DIVERGE_WINDOW} updates is {median:.3g}, "
+                f"more than {self.DIVERGE_FACTOR:g} x the largest return any policy can have here "
+                f"({self.reward_scale:.3g} per step / (1 - {self.discount:g}) = {self.q_bound():.3g}); the run will "
+                "not learn (too high a --lr?): docs/health.md")
 
 
 @dataclass
 class Counters:
-    """Where the training loop stands: what a snapshot records so that a resume continues from
-    it."""
-    step: int = 0               # agent steps taken (frames = steps x action repeat)
-    episode: int = 0            # number of the episode under way, or of the next one
-    # frame of the latest evaluation (the loop's schedule follows from it)
-    last_eval_frame: int = -1
-    mid_episode: bool = False   # an episode has begun and not ended
-
-
-class RunFiles:
-    """A run directory on disk: config.json, train.csv and eval.csv (and TensorBoard events),
-    snapshot.pt with buffer.npz beside it (--save-buffer), the side files of a resume, run.lock; and
-    what a storage error or a kill leaves there. Nothing is created before create(); the directory
-    is owned (RunLock) from before its first write until release()."""
-
-    def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None):
-        self.cfg, self.run, self.resumed = cfg, run, snapshot
-        # a new run's is made by create(): removed if it ends before a snapshot
-        self.path = run.resume or None
-        self.group = None  # the seed group's folder this run belongs to (group.py): what --resume takes then
-        self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
-        self.lock = None
-        # open_logs(), once the directory is there
-        self.train_log = self.eval_log = self.writer = None
-
-    def create(self):
-        """A new run's directory (env__method__seed__time under --run-root), owned, and its
-        config.json."""
-        cfg = self.cfg
-        self.path = new_run_dir(self.run.run_root, f"{cfg.env}__{cli.method_label(cfg)}__{cfg.seed}")
-        self.lock = RunLock(self.path)
-        self.write_config(cli.config_dict(cfg, self.run))
-
-    def own(self):
-        """--resume, before anything is written: a second process on this run stops here. A
-        config.json the user moved aside (cli.check_run_config) is written again from the snapshot's
-        copy."""
-        self.lock = RunLock(self.path)
-        if not os.path.lexists(os.path.join(self.path, "config.json")):
-            self.write_config(self.resumed["config"])
-            print(f"resume: {os.path.join(self.path, 'config.json')} was missing; written again "
-                  f"from snapshot.pt")
-
-    def write_config(self, config: dict):
-        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2),
-                         mode="w")
-
-    def open_logs(self):
-        self.train_log = CsvLog(os.path.join(self.path, "train.csv"))
-        self.eval_log = CsvLog(os.path.join(self.path, "eval.csv"))
-        self.writer = tensorboard_writer(self.path)
-
-    def write_row(self, log: CsvLog, row: dict, scalars: dict, frame: int):
-        """A row of train.csv or eval.csv, and its scalars as TensorBoard events."""
-        log.write(row)
-        if self.writer:
-            for tag, value in scalars.items():
-                self.writer.add_scalar(tag, value, frame)
-
-    def note(self, tag: str, text: str, frame: int):
-        if self.writer:
-            self.writer.add_text(tag, text, frame)
-
-    def check_free_space(self, snapshot: int, buffer: int):
-        """Before any compute is spent: a disk that cannot hold the next snapshot.pt (`snapshot`
-        bytes) is refused (the run's work would be lost at its first snapshot); one that cannot hold
-        what the run writes at its largest (two snapshot.pt while one replaces the other, and with
-        --save-buffer two buffer.npz of the full replay, `buffer` bytes) is warned of. Says the
-        sizes either way."""
-        names = ("snapshot.pt", "buffer.npz")
-        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in names)
-                      if os.path.exists(p))
-        free = shutil.disk_usage(self.path).free
-        more = 2 * snapshot + (2 * buffer if self.run.save_buffer else 0) - on_disk
-        print(f"disk: snapshot.pt {size(snapshot)}"
-              + (f", buffer.npz up to {size(buffer)}" if self.run.save_buffer else "")
-              + f"; {size(free)} free in {self.path}")
-        if free < snapshot:
-            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run "
-                                  f"takes {size(snapshot)}: free some space, or give --run-root on "
-                                  "a larger disk")
-        if free < more:
-            cli.warn(f"{self.path}: {size(free)} free, but this run's files need up to "
-                     f"{size(more)} more (two snapshot.pt of {size(snapshot)} while one replaces "
-                     "the other"
-                     + (f", two buffer.npz of up to {size(buffer)}" if self.run.save_buffer else "")
-                     + "): it will stop on a full disk before its end, its last snapshot standing")
-
-    def save(self, payload: dict, buffer, frame: int):
-        """snapshot.pt, and with --save-buffer buffer.npz beside it. Each write is atomic, and the buffer
-        is written aside first and takes its place only after the snapshot has: a storage error in
-        either write leaves both of the last snapshot. The payload's buffer_t tells a resume whether a
-        kill between the two renames left them apart."""
-        if not self.run.save_buffer:
-            save_snapshot(self.path, payload)
-        else:
-            path = os.path.join(self.path, "buffer.npz")
-            try:
-                save_buffer(buffer, path + ".next")
-                save_snapshot(self.path, payload)
-                with storing(path):
-                    os.replace(path + ".next", path)
-            finally:
-                with contextlib.suppress(OSError):  # after the rename there is nothing left to remove
-                    os.remove(path + ".next")
-        self.snapshot_frame = frame
-
-    def restore_buffer(self, buffer):
-        """The resumed snapshot's replay buffer, where buffer.npz holds it (else the buffer
-        refills)."""
-        state, path = self.resumed, os.path.join(self.path, "buffer.npz")
-        if not (os.path.exists(path) and state.get("buffer_saved")):
-            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
-        elif saved_buffer_t(path) != state.get("buffer_t", saved_buffer_t(path)):
-            print("resume: buffer.npz is not snapshot.pt's (killed between the two writes); "
-                  "refilling")
-        else:
-            load_buffer(buffer, path)
-
-    def set_aside_after(self, frame: int, eval_frame: int):
-        """train.csv's rows after `frame` and eval.csv's after `eval_frame` go to side files."""
-        set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
-        set_aside_rows_after(os.path.join(self.path, "eval.csv"), eval_frame)
-
-    def close(self):
-        if self.writer:
-            self.writer.close()
-
-    def release(self):
-        if self.lock is not None:
-            self.lock.release()
-
-    def remove_if_unsaved(self) -> bool:
-        """A new run's directory without a snapshot: removed (True if it is gone)."""
-        if self.run.resume or self.path is None or self.snapshot_frame is not None:
-            return False
-        # the lock file goes too; the lock is an open fd
-        shutil.rmtree(self.path, ignore_errors=True)
-        return not os.path.exists(self.path)
-
-    @property
-    def resume_path(self) -> str:
-        """What `sear.py --resume` takes to continue this run: its directory, or its seed group's folder."""
-        return self.group or self.path
-
-    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
-        """A storage error's line, ended with what the run dir holds now and how to go on."""
-        if self.path is None:
-            return cli.StorageError(f"{error}; no run directory was made")
-        if self.snapshot_frame is None:
-            return cli.StorageError(f"{error}; {self.path} " + (
-                "had no snapshot yet and was removed (nothing to resume)" if removed
-                else "has no snapshot yet, so there is nothing to resume"))
-        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: "
-                                f"fix that, then python sear.py --resume {self.resume_path}")
-
-    def what_a_kill_leaves(self) -> str:
-        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its
-        watcher thread while the main thread is stuck in a native call): no other cleanup runs."""
-        if self.path is None:
-            return "nothing was saved"
-        if self.snapshot_frame is None:
-            return f"{self.path} " + ("had no snapshot yet and was removed" if self.remove_if_unsaved()
-                                      else "has no snapshot yet, so there is nothing to resume: "
-                                           "delete it")
-        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python "
-                f"sear.py --resume {self.resume_path}")
+    """Where the training loop stands: what a snapshot records so that a resume continues from it."""
+    step: int = 0  # agent steps taken (frames = steps x action repeat)
+    episode: int = 0  # number of the episode under way, or of the next one
+    last_eval_frame: int = -1  # frame of the latest evaluation (the loop's schedule follows from it)
+    mid_episode: bool = False  # an episode has begun and not ended
 
 
 class Console:
-    """What a run shows: what runs where and how long it should take, at its start; the progress
-    line during episodes and evaluations; each evaluation's result and each snapshot; and what a
-    first SIGTERM waits for."""
+    """What a run shows: what runs where and how long it should take, at its start; the progress line during episodes
+    and evaluations; each evaluation's result and each snapshot; and what a first SIGTERM waits for."""
 
     def __init__(self, cfg, run: cli.RunConfig, saved: dict | None):
         self.cfg = cfg
@@ -1003,14 +684,13 @@ class Console:
 
     def say_run(self, path, agent, buffer):
         cfg, replay = self.cfg, buffer.bytes_per_transition
-        print(f"run dir: {path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device "
-              f"{agent.device} | action repeat {cfg.action_repeat} | replay {cfg.replay_size} x "
-              f"{replay} B = {cfg.replay_size * replay / 1e9:.2f} GB at most")
+        print(f"run dir: {path}\nmethod {cli.method_label(cfg)} on {cfg.env} | device {agent.device} | action repeat "
+              f"{cfg.action_repeat} | replay {cfg.replay_size} x {replay} B = {cfg.replay_size * replay / 1e9:.2f} GB "
+              "at most")
         if cfg.mask_source != "sim":
-            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the "
-                  "simulator's mask " + ("is rendered in evaluation episodes only, for "
-                                         "learned_mask_iou)" if cfg.learned_mask_iou
-                                         else "is never rendered)"))
+            print(f"masks: {cfg.mask_source} (the model's prediction on every frame; the simulator's mask "
+                  + ("is rendered in evaluation episodes only, for learned_mask_iou)" if cfg.learned_mask_iou
+                     else "is never rendered)"))
 
     def say_expected_time(self, frame, next_eval):
         p = self.progress
@@ -1031,8 +711,7 @@ class Console:
 
     def show_step(self, frame, episode, ep_len, next_eval):
         self.tick(frame, next_eval)
-        p = self.progress
-        p.show(frame, f"ep {episode} step {ep_len}", p.eta(frame, next_eval))
+        self.progress.show(frame, f"ep {episode} step {ep_len}", self.progress.eta(frame, next_eval))
 
     def show_episode(self, frame, episode, ep_return, next_eval):
         """The line of an episode that just ended (after tick()); its length is measured."""
@@ -1042,8 +721,7 @@ class Console:
         p.restart_window(frame)
 
     def warn(self, kind, message):
-        """A health warning: on stderr (above the bar on a terminal), and on the line from now
-        on."""
+        """A health warning: on stderr (above the bar on a terminal), and on the line from now on."""
         self.progress.flags.append(f"warning: {kind}")
         with tqdm.tqdm.external_write_mode(file=sys.stderr):
             cli.warn(message)
@@ -1055,9 +733,8 @@ class Console:
                           + (f": {untrained}, before any update" if untrained else ""))
 
     def show_eval(self, frame, episode, t, untrained: str, next_eval):
-        """The line during an evaluation: which episode (of which policy at frame 0) and, once an
-        evaluation episode's steps are known, how long it has left at its pace in episodes and
-        steps."""
+        """The line during an evaluation: which episode (of which policy at frame 0) and, once an evaluation episode's
+        steps are known, how long it has left at its pace in episodes and steps."""
         p, now = self.progress, self.progress.clock()
         if episode != self.eval_episode:  # the one before has ended
             p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
@@ -1070,8 +747,7 @@ class Console:
         p.show(frame, text, p.eta(frame, next_eval, (done, spent)))
 
     def end_eval(self, frame, episodes: int) -> float:
-        """The evaluation has ended after `episodes`, whole or cut short; off the training-speed
-        clock. Returns its seconds."""
+        """The evaluation ended after `episodes`, whole or cut short: its seconds, off the training-speed clock."""
         p, now = self.progress, self.progress.clock()
         if episodes > self.eval_episode:  # its last episode ran to its end
             p.see(eval_episode_seconds=now - self.episode_began, eval_episode_steps=self.eval_step)
@@ -1091,16 +767,14 @@ class Console:
                           + f" ({seconds:.1f} s)")
 
     def waits_for(self, frame, mid_episode: bool) -> str:
-        """What a first SIGTERM waits for, and how long at most as measured (cli.TermSignal's
-        line)."""
+        """What a first SIGTERM waits for, and how long at most as measured (cli.TermSignal's line)."""
         p, longest = self.progress, self.progress.longest["eval_episode_seconds"]
         episode = (f"at most one episode: ~{duration(math.ceil(p.episode_bound()))}, measured"
                    if p.episode_bound() else "at most one episode, not timed yet in this process")
         if not self.evaluating:
             return f"the next episode end ({episode}), with a snapshot"
-        bound = (f"at most ~{duration(math.ceil(longest))}, measured" if longest else
-                 f"not timed yet: the first of this process, at step {self.eval_step} after "
-                 f"{duration(p.clock() - self.episode_began)}")
+        bound = (f"at most ~{duration(math.ceil(longest))}, measured" if longest else f"not timed yet: the first of "
+                 f"this process, at step {self.eval_step} after {duration(p.clock() - self.episode_began)}")
         then = (f", then the end of the training episode under way ({episode})"
                 if mid_episode and frame < self.cfg.frames else "")
         return (f"the end of this evaluation episode ({bound}){then}, with a snapshot; the "
@@ -1108,59 +782,56 @@ class Console:
 
 
 class RunDir:
-    """The `with` block a run trains in, over its RunFiles (the directory: config.json, the logs,
-    snapshot.pt with buffer.npz beside it, videos/) and its Console (the lines it prints): on
-    Ctrl-C, SIGTERM, a storage error or a value that is not finite, one line that says what was
-    saved. Nothing is created before create(). A first SIGTERM in the block waits for a safe point:
-    create(), or safe_point() between episodes; an evaluation under way ends at its episode end
-    first.
-
-    The loop (train.train) decides when to evaluate and to snapshot (between episodes, every
-    --snapshot-minutes) and moves its Counters; RunDir writes what it is handed, and snapshots on
-    its own only on a Ctrl-C or SIGTERM between episodes and after the final evaluation. A snapshot
-    holds the agent, the RNG states, the counters and, beside it, the replay buffer; the next
-    episode's reset seed follows from its number, so a resume (with --save-buffer) does exactly what
-    the uninterrupted run would have done."""
+    """The `with` block a run trains in: its directory (config.json, train.csv / eval.csv and TensorBoard, snapshot.pt
+    with buffer.npz, videos/, a resume's side files, run.lock), made by create() and owned until release(), and its
+    Console. A Ctrl-C, SIGTERM, storage error or value that is not finite ends in one line of what stands; a first
+    SIGTERM waits for a safe point (create(), safe_point() between episodes; an evaluation ends at its episode end).
+    The loop (train.train) decides when to evaluate and snapshot and moves the Counters; RunDir writes what it is
+    handed, and snapshots on its own only on a stop between episodes and at the end. A snapshot holds agent, RNG
+    states and counters, buffer.npz the replay: with it a resume does exactly what the uninterrupted run would have."""
 
     def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None = None):
         self.cfg, self.run, self.resumed = cfg, run, snapshot
-        self.files = RunFiles(cfg, run, snapshot)
+        self.path = run.resume or None  # a new run's is made by create(): removed if it ends before a snapshot
+        self.group = None  # the seed group's folder (group.py): what --resume takes then, else self.path
+        self.snapshot_frame = snapshot["counters"]["step"] * cfg.action_repeat if snapshot else None
+        self.lock = self.writer = None
+        self.fields = {}  # each CSV's header, as its first row fixed it
         self.console = Console(cfg, run, (snapshot or {}).get("progress"))
         self.health = Health(cfg.discount)
-        self.counters = None  # the loop's, from start()
-        self.agent = self.buffer = self.sample_rng = None  # what a snapshot saves, from start()
+        self.counters = self.agent = self.buffer = self.sample_rng = None  # the loop's, from start()
         self.watch = None  # the evaluation under way (start_eval)
         self.low_iou = None  # the learned masks' IoU over evaluations (segment.IoUWatch), if measured
         if getattr(cfg, "mask_source", "sim") != "sim" and cfg.learned_mask_iou:
             import segment
             self.low_iou = segment.IoUWatch()
         self.cut = ""  # what a SIGTERM cut short: said when the run stops
-        self.pending = []  # the updates' metrics not read from the device yet
-        self.metrics = {}  # the updates' metrics of the episode under way, read
+        self.pending, self.metrics = [], {}  # the updates' metrics not read from the device yet; the episode's
         self.start_time = time.time()  # less the wall time of the runs a resume continues (start())
 
     @property
-    def path(self):
-        return self.files.path
-
-    @property
     def frame(self):
-        return self.counters.step * self.cfg.action_repeat if self.counters else self.files.snapshot_frame or 0
+        return self.counters.step * self.cfg.action_repeat if self.counters else self.snapshot_frame or 0
 
     # --- start ---
     def create(self):
-        """Once the envs are made (every input checked): the start-up warnings, then a new run's
-        directory and its config.json; a resumed run has both."""
+        """Once the envs are made (every input checked): the start-up warnings, then a new run's directory
+        (env__method__seed__time under --run-root), owned, and its config.json; a resumed run has both."""
         for message in cli.start_warnings(self.cfg, self.run):
             cli.warn(message)
-        if self.files.path is None:
+        if self.path is None:
             self.safe_point()  # stopped while the envs were made: nothing to keep
-            self.files.create()
+            cfg = self.cfg
+            self.path = new_run_dir(self.run.run_root, f"{cfg.env}__{cli.method_label(cfg)}__{cfg.seed}")
+            self.lock = take_lock(self.path)
+            self.write_config(cli.config_dict(cfg, self.run))
+
+    def write_config(self, config: dict):
+        write_atomically(os.path.join(self.path, "config.json"), lambda f: json.dump(config, f, indent=2), mode="w")
 
     @staticmethod
     def safe_point():
-        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops
-        here."""
+        """Between episodes, where a snapshot holds the exact state: a SIGTERM that waited stops here."""
         if cli.TERM.pending:
             raise cli.Terminated
 
@@ -1170,49 +841,77 @@ class RunDir:
         return cli.TERM.pending
 
     def start(self, agent, buffer, sample_rng: np.random.Generator) -> Counters:
-        """Say what runs, restore a resumed run (weights, RNGs, buffer, counters) and open the logs.
-        Returns the counters the loop advances; the snapshots save them with agent, buffer and
-        sample_rng."""
+        """Says what runs, restores a resumed run (weights, RNGs, buffer, counters) and opens the logs. Returns the
+        counters the loop advances; the snapshots save them with agent, buffer and sample_rng."""
         self.agent, self.buffer, self.sample_rng = agent, buffer, sample_rng
         self.console.say_run(self.path, agent, buffer)
         counters, wall_time = self.restore() if self.resumed else (Counters(), 0.0)
-        self.files.open_logs()
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+            self.writer = SummaryWriter(self.path)
+        except Exception:  # tensorboard not installed: CSVs only
+            self.writer = None
         self.health.see_rewards(buffer.rewards[:len(buffer)].cpu().numpy())
-        self.start_time = time.time() - wall_time
-        self.counters = counters
-        self.files.check_free_space(snapshot_bytes(agent), self.cfg.replay_size * buffer.bytes_per_transition)
+        self.start_time, self.counters = time.time() - wall_time, counters
+        self.check_free_space(snapshot_bytes(agent), self.cfg.replay_size * buffer.bytes_per_transition)
         self.console.say_expected_time(self.frame, self.next_eval())
         self.console.progress.restart_window(self.frame)
         return counters
 
+    def check_free_space(self, snapshot: int, buffer: int):
+        """Before any compute is spent: a disk that cannot hold the next snapshot.pt (`snapshot` bytes) is refused;
+        one that cannot hold what the run writes at its largest (two snapshot.pt while one replaces the other, and
+        with --save-buffer two buffer.npz of the full replay, `buffer` bytes) is warned of."""
+        on_disk = sum(os.path.getsize(p) for p in (os.path.join(self.path, n) for n in ("snapshot.pt", "buffer.npz"))
+                      if os.path.exists(p))
+        free, with_buffer = shutil.disk_usage(self.path).free, self.run.save_buffer
+        more = 2 * snapshot + (2 * buffer if with_buffer else 0) - on_disk
+        print(f"disk: snapshot.pt {size(snapshot)}" + (f", buffer.npz up to {size(buffer)}" if with_buffer else "")
+              + f"; {size(free)} free in {self.path}")
+        if free < snapshot:
+            raise cli.ConfigError(f"{self.path}: {size(free)} free, but a snapshot.pt of this run takes "
+                                  f"{size(snapshot)}: free some space, or give --run-root on a larger disk")
+        if free < more:
+            cli.warn(f"{self.path}: {size(free)} free, but this run's files need up to {size(more)} more (two "
+                     f"snapshot.pt of {size(snapshot)} while one replaces the other"
+                     + (f", two buffer.npz of up to {size(buffer)}" if with_buffer else "")
+                     + "): it will stop on a full disk before its end, its last snapshot standing")
+
     def restore(self) -> tuple[Counters, float]:
-        """The resumed snapshot's weights, RNG states and buffer; rows logged after it go to side
-        files. Returns its counters and wall time."""
-        state = self.resumed
+        """The resumed snapshot's weights, RNG states and buffer.npz (else the buffer refills), rows logged after it
+        set aside; returns its counters and wall time."""
+        state, rng, buffer = self.resumed, self.resumed["rng"], os.path.join(self.path, "buffer.npz")
         load_agent(self.agent, state["agent"], self.cfg, "--resume")
-        set_rng_state(state["rng"])
+        random.setstate(rng["python"])
+        np.random.set_state(rng["numpy"])
+        torch.set_rng_state(rng["torch"])
+        if rng["cuda"] is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
         if "rng" not in state["agent"]:  # before the agent had its own generator: torch's stream was it
-            old = state["rng"]["torch"] if self.agent.device.type == "cpu" else \
-                state["rng"]["cuda"][self.agent.device.index or 0]
-            self.agent.rng.set_state(old)
+            self.agent.rng.set_state(rng["torch"] if self.agent.device.type == "cpu" else
+                                     rng["cuda"][self.agent.device.index or 0])
         self.sample_rng.bit_generator.state = state["sample_rng"]
         c = state["counters"]
-        # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the
-        # loop owned its schedule saved the next evaluation's frame instead of the last one's.
+        # Only the end-of-budget snapshot can cut an episode: drop its rest. Snapshots before the loop owned its
+        # schedule saved the next evaluation's frame instead of the last one's.
         counters = Counters(c["step"], c["episode"] + (1 if c["mid_episode"] else 0),
                             c.get("last_eval_frame", c.get("next_eval", 0) - 1))
-        self.files.restore_buffer(self.buffer)
+        if not (os.path.exists(buffer) and state.get("buffer_saved")):
+            print("resume: no saved replay buffer (run with --save-buffer to keep it); refilling")
+        elif saved_buffer_t(buffer) != state.get("buffer_t", saved_buffer_t(buffer)):
+            print("resume: buffer.npz is not snapshot.pt's (killed between the two writes); refilling")
+        else:
+            load_buffer(self.buffer, buffer)
         frame = counters.step * self.cfg.action_repeat
-        # A snapshot taken at an episode end precedes that frame's evaluation (and one a SIGTERM cut
-        # short wrote no row): the resumed run evaluates again from its next evaluation on, so rows
-        # from there go aside too.
-        self.files.set_aside_after(frame, min(frame, self.next_eval(counters) - 1))
+        # A snapshot taken at an episode end precedes that frame's evaluation (and one a SIGTERM cut short wrote no
+        # row): the resumed run evaluates again from its next evaluation on, so rows from there go aside too.
+        set_aside_rows_after(os.path.join(self.path, "train.csv"), frame)
+        set_aside_rows_after(os.path.join(self.path, "eval.csv"), min(frame, self.next_eval(counters) - 1))
         print(f"resumed at frame {frame}, episode {counters.episode}")
         return counters, c["wall_time"]
 
     def next_eval(self, counters=None) -> int:
-        """The frame of the next scheduled evaluation: the first multiple of --eval-every after the
-        last."""
+        """The frame of the next scheduled evaluation: the first multiple of --eval-every after the last."""
         last = (counters or self.counters).last_eval_frame
         return (last // self.cfg.eval_every + 1) * self.cfg.eval_every
 
@@ -1225,43 +924,61 @@ class RunDir:
         self.console.progress.say(f"snapshot at frame {self.frame}")
 
     def save(self):
-        """snapshot.pt (and buffer.npz); never of an agent whose parameters are no longer finite:
-        the last snapshot then stands (a scan of the parameters, ~0.2 s for SEAR's 16M on one CPU
-        thread)."""
+        """snapshot.pt, and with --save-buffer buffer.npz beside it: each write atomic, the buffer's written aside and
+        in place only after the snapshot, so a storage error in either leaves both of the last snapshot (buffer_t
+        tells a resume whether a kill between the renames left them apart). Never of an agent whose parameters are
+        no longer finite: the last snapshot then stands (a scan, ~0.2 s for SEAR's 16M on one CPU thread)."""
         if self.non_finite_networks():
             raise cli.NonFinite("the snapshot due now was not written")
         counters = {**dataclasses.asdict(self.counters), "wall_time": time.time() - self.start_time}
         payload = {"config": cli.config_dict(self.cfg, self.run), "agent": compact(self.agent.state_dict()),
-                   "rng": rng_state(), "sample_rng": self.sample_rng.bit_generator.state,
+                   "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+                           "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
+                   "sample_rng": self.sample_rng.bit_generator.state,
                    "buffer_saved": self.run.save_buffer, "buffer_t": self.buffer.t, "counters": counters,
                    "progress": self.console.progress.state()}  # the ETA of the next start
-        self.files.save(payload, self.buffer, self.frame)
+        if not self.run.save_buffer:
+            save_snapshot(self.path, payload)
+        else:
+            path = os.path.join(self.path, "buffer.npz")
+            try:
+                save_buffer(self.buffer, path + ".next")
+                save_snapshot(self.path, payload)
+                with storing(path):
+                    os.replace(path + ".next", path)
+            finally:
+                with contextlib.suppress(OSError):  # after the rename there is nothing left to remove
+                    os.remove(path + ".next")
+        self.snapshot_frame = self.frame
 
     def finish(self) -> str:
-        """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the
-        path."""
+        """The final snapshot (it may cut an episode: a resume drops the rest of it); returns the path."""
         self.read_updates()  # the cut episode's updates get no row, but their health checks
         self.save()
-        self.console.progress.say(f"done: {self.frame} frames in "
-                                  f"{time.time() - self.start_time:.0f} s; outputs in {self.path}")
-        self.files.close()
+        self.console.progress.say(f"done: {self.frame} frames in {time.time() - self.start_time:.0f} s; outputs in "
+                                  f"{self.path}")
+        if self.writer:
+            self.writer.close()
         return self.path
 
     # --- the with block: how a run stops ---
     def __enter__(self):
-        if self.files.path is not None:
+        if self.path is not None:  # --resume, before anything is written: a second process on this run stops here
             try:
-                self.files.own()
+                self.lock = take_lock(self.path)
+                config = os.path.join(self.path, "config.json")
+                if not os.path.lexists(config):  # moved aside by the user (cli.check_run_config)
+                    self.write_config(self.resumed["config"])
+                    print(f"resume: {config} was missing; written again from snapshot.pt")
             except cli.StorageError as e:
                 self.release()
-                raise self.files.what_stands(e) from None
-        cli.TERM.defer, cli.TERM.stands, cli.TERM.waits_for = True, self.files.what_a_kill_leaves, self.waits_for
+                raise self.what_stands(e) from None
+        cli.TERM.defer, cli.TERM.stands, cli.TERM.waits_for = True, self.what_a_kill_leaves, self.waits_for
         return self
 
     def waits_for(self) -> str:
-        """What a first SIGTERM waits for (cli.TermSignal prints it): before the run's first
-        episode, the next safe point; then the next episode end, or the end of the evaluation
-        episode under way."""
+        """What a first SIGTERM waits for (cli.TermSignal prints it): before the run's first episode, the next safe
+        point; then the next episode end, or the end of the evaluation episode under way."""
         if self.counters is None:
             return ("the end of the start-up (before the run directory is made, or at the first "
                     "episode), with a snapshot once there is a run directory")
@@ -1271,7 +988,9 @@ class RunDir:
         self.console.progress.close()
         cli.TERM.defer = cli.TERM.pending = False
         cli.TERM.stands = cli.TERM.waits_for = None
-        self.files.release()
+        if self.lock is not None:
+            os.close(self.lock)  # releases the lock
+            self.lock = None
 
     def __exit__(self, kind, error, traceback):
         try:
@@ -1280,28 +999,26 @@ class RunDir:
             self.release()
 
     def stopped(self, kind, error):
-        """Ctrl-C or SIGTERM: a snapshot where the state is exactly resumable (between episodes; at
-        the end of the budget it is what the final snapshot holds anyway), then one line saying what
-        is saved. A storage error: its line says what stands. A value that is not finite
-        (cli.NonFinite): one line with the frame, what it was and what stands. A new run that ends
-        before its first snapshot, however it ends (but for a kill), leaves no run directory:
-        nothing in it resumes."""
+        """Ctrl-C or SIGTERM: a snapshot where the state is exactly resumable (between episodes, or at the end of the
+        budget), then one line saying what is saved. A storage error or a value that is not finite (cli.NonFinite):
+        one line with what stands. A new run that ends before its first snapshot, however it ends (but for a kill),
+        leaves no run directory: nothing in it resumes."""
         if kind is None:
             return
         c, frame, failed = self.counters, self.frame, ""
         where = ("starting" if c is None else "end of budget" if frame >= self.cfg.frames
                  else "mid-episode" if c.mid_episode else "between episodes")
         if (issubclass(kind, KeyboardInterrupt) and where in ("between episodes", "end of budget")
-                and self.files.snapshot_frame != frame):
+                and self.snapshot_frame != frame):
             failed = self.save_on_stop()
-        removed = self.files.remove_if_unsaved()
+        removed = self.remove_if_unsaved()
         if issubclass(kind, cli.StorageError):
-            raise self.files.what_stands(error, removed) from None
+            raise self.what_stands(error, removed) from None
         if issubclass(kind, cli.NonFinite):
             raise cli.NonFinite(self.diverged(error, removed)) from None
         if issubclass(kind, KeyboardInterrupt):
             cause, code = cli.stop_cause(error)
-            line = interrupt_message(self.path, frame, where + self.cut, self.files.snapshot_frame,
+            line = interrupt_message(self.path, frame, where + self.cut, self.snapshot_frame,
                                      self.run.snapshot_minutes, cause, removed)
             raise cli.Interrupted(line + failed, code) from None
 
@@ -1310,8 +1027,7 @@ class RunDir:
         frame = self.frame
         try:
             self.save()
-        # a second Ctrl-C: the atomic writes leave the last snapshot whole
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # a second Ctrl-C: the atomic writes leave the last snapshot whole
             pass
         except cli.StorageError as e:
             return f" (the snapshot of frame {frame} failed: {e})"
@@ -1320,6 +1036,37 @@ class RunDir:
                     f"{self.non_finite_networks()})")
         return ""
 
+    def remove_if_unsaved(self) -> bool:
+        """A new run's directory without a snapshot: removed (True if it is gone), its lock file too."""
+        if self.run.resume or self.path is None or self.snapshot_frame is not None:
+            return False
+        shutil.rmtree(self.path, ignore_errors=True)
+        return not os.path.exists(self.path)
+
+    def no_snapshot(self, removed: bool) -> str:
+        return f"{self.path} " + ("had no snapshot yet and was removed" if removed
+                                  else "has no snapshot yet, so there is nothing to resume")
+
+    def what_stands(self, error: cli.StorageError, removed=False) -> cli.StorageError:
+        """A storage error's line, ended with what the run dir holds now and how to go on."""
+        if self.path is None:
+            return cli.StorageError(f"{error}; no run directory was made")
+        if self.snapshot_frame is None:
+            return cli.StorageError(f"{error}; {self.no_snapshot(removed)}" + " (nothing to resume)" * removed)
+        return cli.StorageError(f"{error}; the last snapshot (frame {self.snapshot_frame}) stands: "
+                                f"fix that, then python sear.py --resume {self.group or self.path}")
+
+    def what_a_kill_leaves(self) -> str:
+        """What stands when the process is ended at once (cli.TermSignal's forced stop, from its watcher thread while
+        the main thread is stuck in a native call): no other cleanup runs."""
+        if self.path is None:
+            return "nothing was saved"
+        if self.snapshot_frame is None:
+            removed = self.remove_if_unsaved()
+            return self.no_snapshot(removed) + ("" if removed else ": delete it")
+        return (f"the last snapshot (frame {self.snapshot_frame}) stands; continue with: python "
+                f"sear.py --resume {self.group or self.path}")
+
     def non_finite_networks(self) -> list[str]:
         """The agent's networks with a parameter that is not a finite number."""
         nets = {name: getattr(self.agent, name, None) for name in ("encoder", "actor", "critic", "aux")}
@@ -1327,8 +1074,8 @@ class RunDir:
                 if net is not None and not all(torch.isfinite(p).all() for p in net.parameters())]
 
     def diverged(self, error: cli.NonFinite, removed: bool) -> str:
-        """The line of a run stopped by a value that is not finite: the first update metric that was
-        not, if one was (the cause), else what stopped it (an action)."""
+        """The line of a run stopped by a value that is not finite: the first update metric that was not, if one was
+        (the cause), else what stopped it (an action)."""
         try:
             self.read_updates()
         except cli.NonFinite as first:
@@ -1337,28 +1084,23 @@ class RunDir:
         line = (f"the run diverged at frame {self.frame}: {error}"
                 + (f" (parameters no longer finite: {', '.join(nets)})" if nets else "")
                 + "; it stopped before that reached the simulator")
-        if self.files.snapshot_frame is not None:
-            return (line + f"; the last snapshot (frame {self.files.snapshot_frame}) stands: "
-                           "python sear.py "
-                    f"--resume {self.files.resume_path} continues from it (with --save-buffer it replays the "
-                    f"same updates): docs/health.md")
-        return (line + f"; {self.path} " + ("had no snapshot yet and was removed" if removed else
-                                            "has no snapshot yet, so there is nothing to resume")
-                + "; start again with other settings (a lower --lr, smaller loss weights): "
-                  "docs/health.md")
+        if self.snapshot_frame is not None:
+            return (line + f"; the last snapshot (frame {self.snapshot_frame}) stands: python sear.py --resume "
+                    f"{self.group or self.path} continues from it (with --save-buffer it replays the same updates): "
+                    "docs/health.md")
+        return (line + f"; {self.no_snapshot(removed)}; start again with other settings (a lower --lr, smaller "
+                "loss weights): docs/health.md")
 
     # --- logs ---
     def log_update(self, metrics: dict):
-        """An update's metrics (0-d tensors on the device, as the agent returns them): kept there
-        until the next log line reads them all at once (read_updates), so that updates never wait
-        for the host."""
+        """An update's metrics (0-d tensors on the device): kept there until the next log line reads them all at once
+        (read_updates), so that updates never wait for the host."""
         self.console.progress.updates += 1
         self.pending.append(metrics)
 
     def read_updates(self):
-        """The pending updates' metrics, read in one device sync: into the episode's means, and
-        through the health checks, update by update (a value that is not finite stops the run; an
-        agent whose weights went NaN is stopped sooner, at its next action, by runenvs.check_finite)."""
+        """The pending updates' metrics, read in one device sync: into the episode's means, and through the health
+        checks, update by update (a value that is not finite stops the run)."""
         values = [v for metrics in self.pending for v in metrics.values()]
         tensors = [v for v in values if torch.is_tensor(v)]
         read = iter(torch.stack([v.detach().double() for v in tensors]).tolist() if tensors else [])
@@ -1368,9 +1110,24 @@ class RunDir:
             metrics = {k: next(values) for k in metrics}
             for kind, message in self.health.check(metrics):
                 self.console.warn(kind, message)
-                self.files.note("health", message, self.frame)
+                if self.writer:
+                    self.writer.add_text("health", message, self.frame)
             for k, v in metrics.items():
                 self.metrics.setdefault(k, []).append(v)
+
+    def write_row(self, name: str, row: dict, scalars: dict, frame: int):
+        """A row of train.csv or eval.csv (the columns of its first row), and its scalars as TensorBoard events."""
+        path = os.path.join(self.path, name)
+        if name not in self.fields and os.path.exists(path):
+            with open(path, newline="") as f:
+                self.fields[name] = next(csv.reader(f), None)
+        with storing(path), open(path, "a", newline="") as f:
+            if self.fields.get(name) is None:
+                self.fields[name] = list(row)
+                csv.writer(f).writerow(row)
+            csv.DictWriter(f, self.fields[name], extrasaction="ignore").writerow(row)
+        for tag, value in scalars.items() if self.writer else ():
+            self.writer.add_scalar(tag, value, frame)
 
     def show_step(self, ep_len):
         self.console.show_step(self.frame, self.counters.episode, ep_len, self.next_eval())
@@ -1380,20 +1137,17 @@ class RunDir:
         frame, episode, b = self.frame, self.counters.episode, self.buffer
         self.read_updates()
         self.console.tick(frame, self.next_eval())
-        # the episode's rewards
         self.health.see_rewards(b.rewards[torch.arange(b.t - ep_len, b.t) % b.capacity].cpu().numpy())
-        row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return,
-               "length": ep_len}
+        row = {"frame": frame, "step": self.counters.step, "episode": episode, "return": ep_return, "length": ep_len}
         if "success" in info:
             row["success"] = float(ep_success)
         if "task" in info:  # task sets: which task the episode drew
             row["task"] = info["task"]
         means = {k: float(np.mean(v)) for k, v in self.metrics.items()}
         row.update({k: means.get(k, "") for k in self.agent.metric_names})
-        row.update({"fps": round(self.console.progress.fps, 2),
-                    "wall_time": round(time.time() - self.start_time, 2)})
+        row.update({"fps": round(self.console.progress.fps, 2), "wall_time": round(time.time() - self.start_time, 2)})
         scalars = {"train/return": ep_return, **{f"train/{k}": v for k, v in means.items()}}
-        self.files.write_row(self.files.train_log, row, scalars, frame)
+        self.write_row("train.csv", row, scalars, frame)
         self.console.show_episode(frame, episode, ep_return, self.next_eval())
         self.metrics = {}
 
@@ -1405,13 +1159,11 @@ class RunDir:
         return "the policy copied by --init-from" if self.run.init_from else "the untrained policy"
 
     def start_eval(self, tasks) -> EvalWatch:
-        """An evaluation starts (of the eval env's `tasks`, None for one task): what watches its
-        observations (the decoders' metrics, the first episode filmed with --save-video). Off the
-        training-speed clock until end_eval()."""
+        """An evaluation starts (of the eval env's `tasks`, None for one task), off the training-speed clock until
+        end_eval(): what watches its observations (decoder metrics; with --save-video the first episode filmed)."""
         from harness import runenvs
         self.console.start_eval(self.frame, len(runenvs.eval_tasks(tasks, self.cfg)), self.untrained())
-        video = (os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video
-                 else None)
+        video = os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video else None
         self.watch = EvalWatch(self.agent, video)
         return self.watch
 
@@ -1420,9 +1172,9 @@ class RunDir:
         self.console.show_eval(self.frame, episode, t, self.untrained(), self.next_eval())
 
     def end_eval(self, episodes, learned_iou=None) -> bool:
-        """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True); none
-        for an evaluation that a SIGTERM cut short (False): the resumed run evaluates again.
-        learned_iou: the learned masks' IoU over its frames (--mask-source learned:)."""
+        """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True); none for an evaluation
+        that a SIGTERM cut short (False): the resumed run evaluates again. learned_iou: the learned masks' IoU over
+        its frames (--mask-source learned:)."""
         c, frame, watch = self.counters, self.frame, self.watch
         scores = watch.finish()
         self.watch = None
@@ -1439,6 +1191,6 @@ class RunDir:
             if warning := self.low_iou.see(learned_iou, frame):
                 cli.warn(warning)
         scalars = {"eval/return": row["return"], **{f"eval/{name}": v for name, v in scores.items()}}
-        self.files.write_row(self.files.eval_log, row, scalars, frame)
+        self.write_row("eval.csv", row, scalars, frame)
         self.console.say_eval(frame, row, scores, seconds)
         return True

@@ -152,7 +152,7 @@ def check_run_config(run_dir):
                           f"config.json aside and resume again to have it written from there")
 
 
-# The owner's lock (experiment.RunLock takes it): an flock on this file, which holds "pid host".
+# The owner's lock (experiment.take_lock takes it): an flock on this file, which holds "pid host".
 LOCK_FILE = "run.lock"
 
 

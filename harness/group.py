@@ -144,9 +144,9 @@ class Runs:
             label = f"{cfg.env}__{cli.method_label(cfg)}__seeds{self.seeds[0]}-{self.seeds[-1]}"
             self.group_dir = experiment.new_run_dir(run.run_root, label)
             for d in self.dirs:
-                d.run = d.files.run = dataclasses.replace(run, run_root=self.group_dir)
+                d.run = dataclasses.replace(run, run_root=self.group_dir)
         for d in self.dirs:
-            d.files.group = self.group_dir
+            d.group = self.group_dir
             d.create()
         if self.seeds is not None:
             self.consoles = [open(os.path.join(d.path, "console.log"), "a") for d in self.dirs]
@@ -243,7 +243,7 @@ class Runs:
             raise next((e for p, e in said.items() if p and p in str(error)), next(iter(said.values()))) from None
         if issubclass(kind, KeyboardInterrupt) and lines:
             cause, code = cli.stop_cause(error)
-            frames = sorted({d.files.snapshot_frame for d in self.dirs}, key=lambda f: -1 if f is None else f)
+            frames = sorted({d.snapshot_frame for d in self.dirs}, key=lambda f: -1 if f is None else f)
             stands = (f"every seed's snapshot holds frame {frames[0]}" if len(frames) == 1 and frames[0] is not None
                       else f"the seeds' last snapshots stand (frames {', '.join(map(str, frames))})")
             resume = f"continue with: python sear.py --resume {self.group_dir}" if self.group_dir else "nothing to resume"

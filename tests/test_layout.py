@@ -168,12 +168,12 @@ def test_import_sear_needs_only_torch_numpy_and_the_standard_library():
 
 
 def test_the_loop_owns_its_schedule_and_the_run_dir_only_writes():
-    """train.train decides when to evaluate, snapshot and stop; experiment.RunDir (and the files and
-    console it is made of) never moves the loop's counters (it is handed them to save) and keeps no
-    clock of when to snapshot."""
+    """train.train decides when to evaluate, snapshot and stop; experiment.RunDir (and the console it
+    is made of) never moves the loop's counters (it is handed them to save) and keeps no clock of
+    when to snapshot."""
     tree = ast.parse((ROOT / "harness" / "experiment.py").read_text())
-    parts = [n for n in tree.body if isinstance(n, ast.ClassDef) and n.name in ("RunDir", "RunFiles", "Console")]
-    assert len(parts) == 3
+    parts = [n for n in tree.body if isinstance(n, ast.ClassDef) and n.name in ("RunDir", "Console")]
+    assert len(parts) == 2
 
     def counters(node):  # c.step, counters.step, self.counters.step
         return (isinstance(node, ast.Name) and node.id in ("c", "counters")
