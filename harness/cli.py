@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 # What the rest of the project calls cli.X lives here or in these (which import nothing of cli):
 from harness.files import (LOCK_FILE, ConfigError, StorageError, check_run_config, check_run_root,  # noqa: F401
-                           first_sentence, flag, inherit_from_source, load_snapshot, lock_holder, lock_owner, storing,
+                           first_sentence, flag, inherit_from_source, load_snapshot, lock_holder, storing,
                            torch_save, write_atomically)
 from harness.process import (TERM, Terminated, TermSignal, configure_allocator, cxx_compiler,  # noqa: F401
                              default_threads, set_tf32, start_warnings, stop_cause, torch_threads)
