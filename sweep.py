@@ -222,10 +222,6 @@ def resume_flags(cfg) -> tuple[str, ...]:
     return tuple(flags)
 
 
-def plural(n: int, word: str) -> str:
-    return f"{n} {word}{'s' * (n != 1)}"
-
-
 def sweep_name(args) -> str:
     """The sweep's folder under --out: --name, else the grid's name, else custom."""
     sweep = args.name or args.grid or "custom"
@@ -352,8 +348,8 @@ def packing_line(units: list[Pack], k: int, why: str) -> str:
     if most > k:
         why += "; earlier packs keep their seeds"
     if most < k:
-        why += f"; at most {plural(most, 'seed')} of a task and method to run"
-    return f"{plural(most, 'seed')} per job ({why})"
+        why += f"; at most {cli.plural(most, 'seed')} of a task and method to run"
+    return f"{cli.plural(most, 'seed')} per job ({why})"
 
 
 # What one sear.py run holds, measured (EXPERIMENTS.md, "Memory": VmRSS of a default run on the CPU): 0.89 GB
@@ -533,7 +529,8 @@ def alive(owner: dict | None) -> bool | None:
 
 
 def pid_alive(pid: int, start: int | None) -> bool:
-    """Whether `pid` of this host lives and is the process that started at `start`, not a zombie."""
+    """Whether `pid` of this host lives and is the process that started at `start`, not a zombie. (Jobs run this
+    module's code by value, with no project on their path: the lock's helpers import nothing of harness.)"""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -976,7 +973,7 @@ def listed(args, verb: str, sweep: str, entries: list[dict]) -> str:
         line = ["python", "sweep.py", *(["--out", args.out] if args.out != "sweeps" else []),
                 *(["--grid", grid] if grid else []), *(["--name", sweep] if sweep != (grid or "custom") else []),
                 f"--{verb}", *(["--", *flags] if flags else [])]
-        return shlex.join(line) + (f" ({plural(len(entry['jobs']), 'job')})" if "jobs" in entry else "")
+        return shlex.join(line) + (f" ({cli.plural(len(entry['jobs']), 'job')})" if "jobs" in entry else "")
     return "; ".join(map(command, entries))
 
 
@@ -1110,8 +1107,8 @@ def across_tasks(norm: dict, envs: list[str], variants: list[str]) -> tuple[dict
     point, ci = plot.bootstrap({v: s[2] for v, s in shared.items()}, iqm_and_mean) if shared else ({}, {})
     lines, rows = {}, []
     for v, (seeds, frames, _) in shared.items():
-        f, runs = len(frames), f"{plural(len(seeds), 'seed')} x {plural(len(envs), 'task')}"
-        lines[v] = (frames, point[v][:f], ci[v][:, :f], len(seeds), f"over {plural(len(envs), 'task')}")
+        f, runs = len(frames), f"{cli.plural(len(seeds), 'seed')} x {cli.plural(len(envs), 'task')}"
+        lines[v] = (frames, point[v][:f], ci[v][:, :f], len(seeds), f"over {cli.plural(len(envs), 'task')}")
         iqm, mean = (f"{point[v][i]:.3f} [{ci[v][0, i]:.3f}, {ci[v][1, i]:.3f}]" for i in (f - 1, 2 * f - 1))
         rows.append(f"| {v} | {runs} | {frames[-1]:.0f} | {iqm} | {mean} |")
     return lines, rows
@@ -1157,7 +1154,7 @@ def report(out: str, sweep: str, specs: list[JobSpec], metric: str | None) -> st
 
 def draw_report(png: str, sweep: str, metric: str, panels: dict, lines: dict) -> None:
     """report.png: a panel per task (raw scores), and one of the IQM over the tasks."""
-    overall = f"over {plural(len(panels), 'task')}"
+    overall = f"over {cli.plural(len(panels), 'task')}"
     ylabel = f"eval {'success rate' if metric == 'success' else 'return'}"
     plot.plot({**panels, overall: lines} if lines else panels, png, ylabel,
               f"{sweep}: {ylabel} per task; over the tasks, the IQM of scores normalised per task to 0-1 "
