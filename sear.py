@@ -138,7 +138,7 @@ class TruncatedNormal(torch.distributions.Normal):
         self.eps = eps
 
     def sample(self, clip=None, noise=None):
-        """loc + scale x noise (standard normal draws; torch's RNG if None), clipped to (-1, 1)."""
+        """loc + scale x noise (standard normal; torch's RNG if None) in +-clip, then in (-1, 1)."""
         noise = (torch.randn_like(self.loc) if noise is None else noise) * self.scale
         if clip is not None:
             noise = noise.clamp(-clip, clip)

@@ -322,9 +322,6 @@ def stage_writes(buffers: list):
     return StagedWrites(buffers).flush
 
 
-NUMPY = {torch.float32: np.float32, torch.uint8: np.uint8, torch.bool: np.bool_}
-
-
 class StagedWrites:
     """All seeds' replay writes of an agent step in one host->device copy. ReplayBuffer.put writes a
     slot at once: three copies from pageable host memory (frame, packed mask, action) and three fills
@@ -333,20 +330,28 @@ class StagedWrites:
     each ring's slots from the copy on the device. A slot still waiting is never drawn: a ring
     draws only from finished episodes, and the slot a write overwrites is already outside them."""
 
+    # a slot's arrays in a row, in put's order; float32 first, so their offsets stay 4-aligned
+    PARTS = ("actions", "rewards", "frames", "masks", "terminal", "first")
+
     def __init__(self, buffers: list):
-        b = buffers[0]
-        # (ring array, bytes, dtype, shape of a slot); float32 first, so their offsets stay 4-aligned
-        self.parts = [(name, getattr(b, name)[0].nbytes, getattr(b, name).dtype, getattr(b, name).shape[1:])
-                      for name in ("actions", "rewards", "frames", "masks", "terminal", "first")]
-        row = -(-sum(n for _, n, _, _ in self.parts) // 4) * 4
-        pin = b.device.type == "cuda"
+        self.ring = buffers[0]
+        row = -(-sum(getattr(self.ring, name)[0].nbytes for name in self.PARTS) // 4) * 4
+        pin = self.ring.device.type == "cuda"
         # at most two writes a seed between flushes: an episode's first step and a step
         self.host = torch.zeros((2 * len(buffers), row), dtype=torch.uint8, pin_memory=pin)
-        self.rows = torch.zeros_like(self.host, device=b.device)
+        self.rows = torch.zeros_like(self.host, device=self.ring.device)
         self.copied = torch.cuda.Event() if pin else None
         self.pending = []  # (ring, slot) of each row filled since the last flush
         for ring in buffers:
             ring.put = self.putter(ring)
+
+    def slot(self, row: torch.Tensor) -> list[torch.Tensor]:
+        """A row of bytes, on the host or the device, as views of a slot's arrays (their dtypes and shapes)."""
+        views, offset = [], 0
+        for array in (getattr(self.ring, name) for name in self.PARTS):
+            views.append(row[offset:offset + array[0].nbytes].view(array.dtype).view(array.shape[1:]))
+            offset += array[0].nbytes
+        return views
 
     def putter(self, ring):
         def put(i, frame, mask, action, reward, terminal, first):
@@ -355,12 +360,9 @@ class StagedWrites:
             if not self.pending and self.copied is not None:
                 # the last flush's copy has left these rows (long since: an act read the GPU after it)
                 self.copied.synchronize()
-            values = (action, reward, frame, mask, terminal, first)
-            row, offset = self.host[len(self.pending)].numpy(), 0
-            for (_, n, dtype, shape), value in zip(self.parts, values):
-                value = np.broadcast_to(np.asarray(value, dtype=NUMPY[dtype]), shape)
-                row[offset:offset + n] = np.ascontiguousarray(value).reshape(-1).view(np.uint8)
-                offset += n
+            for view, value in zip(self.slot(self.host[len(self.pending)]),
+                                   (action, reward, frame, mask, terminal, first)):
+                view.copy_(torch.as_tensor(value))
             self.pending.append((ring, i))
         return put
 
@@ -372,11 +374,9 @@ class StagedWrites:
         rows.copy_(self.host[:len(self.pending)], non_blocking=True)
         if self.copied is not None:
             self.copied.record()
-        for k, (ring, i) in enumerate(self.pending):
-            offset = 0
-            for name, n, dtype, shape in self.parts:
-                getattr(ring, name)[i] = rows[k, offset:offset + n].view(dtype).view(shape)
-                offset += n
+        for (ring, i), row in zip(self.pending, rows):
+            for name, view in zip(self.PARTS, self.slot(row)):
+                getattr(ring, name)[i] = view
         self.pending.clear()
 
 
