@@ -263,13 +263,13 @@ def train(cfg: Config, run: cli.RunConfig, snapshot=None, seeds=None, group_dir=
             between = np.array([not d.counters.mid_episode for d in runs])
             if between.all() or final:
                 # The one stop point: a first SIGTERM stops every seed here (with its snapshot).
-                runs.safe_point()
+                lead.safe_point()
                 if final:
                     break
                 # every --snapshot-minutes, at an episode's end (not where the run starts)
                 fresh = frame in (0, lead.snapshot_frame)
                 if not fresh and time.monotonic() - clock >= 60 * run.snapshot_minutes:
-                    runs.snapshot()
+                    runs.each("snapshot")
                     clock = time.monotonic()
             if between.any():
                 start_episodes(runs, envs, buffers, stacks, between, ep)

@@ -86,7 +86,7 @@ class Runs:
 
     def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None, seeds=None, group_dir=None):
         self.group_dir, self.seeds = group_dir, seeds
-        self.dirs, self.consoles, self.line, self.closables = [], [], None, []
+        self.dirs, self.consoles, self.closables = [], [], []  # consoles: a group's console.log files (create())
         if seeds is None:  # one run
             self.dirs = [experiment.RunDir(cfg, run, snapshot)]
             return
@@ -153,8 +153,10 @@ class Runs:
             runs = {str(d.cfg.seed): os.path.basename(d.path) for d in self.dirs}
             cli.write_atomically(os.path.join(self.group_dir, GROUP_FILE),
                                  lambda f: json.dump({"seeds": self.seeds, "runs": runs}, f, indent=2), mode="w")
-            self.line = GroupLine(self.dirs)
-            cfg = self.dirs[0].cfg
+            cfg, every = self.dirs[0].cfg, self.dirs[0].run.log_every
+            # the group's progress line (show_line): its speed from here, and the seeds' last returns
+            self.began, self.began_frame, self.shown = time.monotonic(), self.dirs[0].frame, 0.0
+            self.returns, self.every = [float("nan")] * len(self), min(every, 1.0) if sys.stdout.isatty() else every
             print(f"group: {len(self)} seeds ({self.seeds[0]}..{self.seeds[-1]}) of {cli.method_label(cfg)} on "
                   f"{cfg.env} in {self.group_dir}; {where}", flush=True)
 
@@ -162,53 +164,53 @@ class Runs:
         """Each seed's RunDir.start (a resumed seed restored); their counters."""
         return [self.call(i, "start", a, b, r) for i, (a, b, r) in enumerate(zip(agents, buffers, rngs))]
 
-    def say(self, text: str):
-        if self.line is not None:
-            print(text, flush=True)
-
     # --- the loop's calls ---
-    def safe_point(self):
-        self.dirs[0].safe_point()
-
-    def snapshot(self):
-        self.each("snapshot")
-
     def log_updates(self, metrics: list[dict]):
         for d, mine in zip(self.dirs, metrics):
             d.log_update(mine)
 
     def log_episode(self, i, ep_return, ep_len, ep_success, info):
         self.call(i, "log_episode", ep_return, ep_len, ep_success, info)
-        if self.line is not None:
-            self.line.returns[i] = ep_return
+        if self.consoles:
+            self.returns[i] = ep_return
 
     def show_step(self, i, ep_len):
         self.call(i, "show_step", ep_len)
-        if self.line is not None and i == 0:
-            self.line.show(self.dirs[0].frame)
+        if self.consoles and i == 0:
+            self.show_line()
+
+    def show_line(self):
+        """The group's one progress line: frame, frames/s of all seeds together, the seeds' last returns."""
+        now, cfg, frame = time.monotonic(), self.dirs[0].cfg, self.dirs[0].frame
+        if now - self.shown < self.every:
+            return
+        self.shown = now
+        fps = len(self) * (frame - self.began_frame) / max(now - self.began, 1e-9)
+        done = [r for r in self.returns if r == r]
+        print(f"frame {frame}/{cfg.frames} ({100 * frame / cfg.frames:.1f}%) | {fps:.1f} frames/s, "
+              f"{len(self)} seeds" + (f" | last returns {min(done):.1f} to {max(done):.1f} "
+                                      f"(mean {np.mean(done):.1f})" if done else ""), flush=True)
 
     def show_eval(self, episode, t):
         """The evaluation's progress: seed 0's run dir's line; a group's line as each episode ends."""
-        if self.line is not None and episode > self.line.eval_episode:
-            print(f"eval {episode}/{self.dirs[0].console.eval_episodes} done", flush=True)
-        if self.line is not None:
-            self.line.eval_episode = episode
+        lead = self.dirs[0].console  # its eval_episode: the episode under way until this call
+        if self.consoles and episode != lead.eval_episode:
+            print(f"eval {episode}/{lead.eval_episodes} done", flush=True)
         self.call(0, "show_eval", episode, t)
 
     def say_eval(self, episodes):
         """The group's lines at an evaluation's end: each seed's mean return."""
-        if self.line is not None:
-            if episodes[0]:
-                print(f"eval {len(episodes[0])}/{self.dirs[0].console.eval_episodes} done", flush=True)
-            self.line.eval_episode = 0
-        if self.line is not None and all(len(e) == self.dirs[0].console.eval_episodes for e in episodes):
+        whole = self.dirs[0].console.eval_episodes
+        if self.consoles and episodes[0]:
+            print(f"eval {len(episodes[0])}/{whole} done", flush=True)
+        if self.consoles and all(len(e) == whole for e in episodes):
             means = [np.mean([e.ret for e in mine]) for mine in episodes]
             print(f"eval @ frame {self.dirs[0].frame}: mean return over seeds {np.mean(means):.1f} (seeds: "
                   + ", ".join(f"{d.cfg.seed}: {r:.1f}" for d, r in zip(self.dirs, means)) + ")", flush=True)
 
     def finish(self) -> str:
         self.each("finish")
-        if self.line is not None:
+        if self.consoles:
             print(f"done: {len(self)} seeds in {self.group_dir}")
         return self.group_dir or self.dirs[0].path
 
@@ -270,24 +272,3 @@ def main(argv, Config, methods, train, evaluate) -> int:
             return print(done)
         return train(cfg, run, snapshot, seeds, group_dir)
     return cli.main(argv, Config, methods, train_group, train_group)
-
-
-class GroupLine:
-    """The group's one progress line: frame, frames/s of all seeds together, the seeds' last returns."""
-
-    def __init__(self, dirs):
-        self.dirs, self.returns, self.eval_episode = dirs, [float("nan")] * len(dirs), 0
-        run = dirs[0].run
-        self.start, self.start_frame, self.last = time.monotonic(), dirs[0].frame, 0.0
-        self.every = min(run.log_every, 1.0) if sys.stdout.isatty() else run.log_every
-
-    def show(self, frame):
-        now = time.monotonic()
-        if now - self.last < self.every:
-            return
-        self.last, cfg = now, self.dirs[0].cfg
-        fps = len(self.dirs) * (frame - self.start_frame) / max(now - self.start, 1e-9)
-        done = [r for r in self.returns if r == r]
-        print(f"frame {frame}/{cfg.frames} ({100 * frame / cfg.frames:.1f}%) | {fps:.1f} frames/s, "
-              f"{len(self.dirs)} seeds" + (f" | last returns {min(done):.1f} to {max(done):.1f} "
-                                           f"(mean {np.mean(done):.1f})" if done else ""), flush=True)
