@@ -87,6 +87,9 @@ class Runs:
     def __init__(self, cfg, run: cli.RunConfig, snapshot: dict | None, seeds=None, group_dir=None):
         self.group_dir, self.seeds = group_dir, seeds
         self.dirs, self.consoles, self.closables = [], [], []  # consoles: a group's console.log files (create())
+        # a group's progress line (show_line): the seeds' last returns, (time, frame) of its start (create())
+        self.returns, self.began, self.shown = [float("nan")] * len(seeds or ()), None, 0.0
+        self.every = min(run.log_every, 1.0) if sys.stdout.isatty() else run.log_every
         if seeds is None:  # one run
             self.dirs = [experiment.RunDir(cfg, run, snapshot)]
             return
@@ -153,10 +156,7 @@ class Runs:
             runs = {str(d.cfg.seed): os.path.basename(d.path) for d in self.dirs}
             cli.write_atomically(os.path.join(self.group_dir, GROUP_FILE),
                                  lambda f: json.dump({"seeds": self.seeds, "runs": runs}, f, indent=2), mode="w")
-            cfg, every = self.dirs[0].cfg, self.dirs[0].run.log_every
-            # the group's progress line (show_line): its speed from here, and the seeds' last returns
-            self.began, self.began_frame, self.shown = time.monotonic(), self.dirs[0].frame, 0.0
-            self.returns, self.every = [float("nan")] * len(self), min(every, 1.0) if sys.stdout.isatty() else every
+            self.began, cfg = (time.monotonic(), self.dirs[0].frame), self.dirs[0].cfg
             print(f"group: {len(self)} seeds ({self.seeds[0]}..{self.seeds[-1]}) of {cli.method_label(cfg)} on "
                   f"{cfg.env} in {self.group_dir}; {where}", flush=True)
 
@@ -184,8 +184,8 @@ class Runs:
         now, cfg, frame = time.monotonic(), self.dirs[0].cfg, self.dirs[0].frame
         if now - self.shown < self.every:
             return
-        self.shown = now
-        fps = len(self) * (frame - self.began_frame) / max(now - self.began, 1e-9)
+        (start, start_frame), self.shown = self.began, now
+        fps = len(self) * (frame - start_frame) / max(now - start, 1e-9)
         done = [r for r in self.returns if r == r]
         print(f"frame {frame}/{cfg.frames} ({100 * frame / cfg.frames:.1f}%) | {fps:.1f} frames/s, "
               f"{len(self)} seeds" + (f" | last returns {min(done):.1f} to {max(done):.1f} "
