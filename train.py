@@ -159,7 +159,7 @@ def evaluate_and_log(agents, envs, runs: group.Runs) -> None:
         learned_iou = envs.call("eval", "pop")
     for i, d in enumerate(runs):
         # False: cut short
-        if runs.call(i, "end_eval", episodes[i], learned_iou[i]):
+        if runs.call(i, "end_eval", watches[i], episodes[i], learned_iou[i]):
             d.counters.last_eval_frame = d.counters.step * d.cfg.action_repeat
     runs.say_eval(episodes)
 

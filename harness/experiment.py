@@ -800,7 +800,6 @@ class RunDir:
         self.console = Console(cfg, run, (snapshot or {}).get("progress"))
         self.health = Health(cfg.discount)
         self.counters = self.agent = self.buffer = self.sample_rng = None  # the loop's, from start()
-        self.watch = None  # the evaluation under way (start_eval)
         self.low_iou = None  # the learned masks' IoU over evaluations (segment.IoUWatch), if measured
         if getattr(cfg, "mask_source", "sim") != "sim" and cfg.learned_mask_iou:
             import segment
@@ -1164,20 +1163,18 @@ class RunDir:
         from harness import runenvs
         self.console.start_eval(self.frame, len(runenvs.eval_tasks(tasks, self.cfg)), self.untrained())
         video = os.path.join(self.path, "videos", f"eval_{self.frame}.mp4") if self.run.save_video else None
-        self.watch = EvalWatch(self.agent, video)
-        return self.watch
+        return EvalWatch(self.agent, video)
 
     def show_eval(self, episode, t):
         """The progress line during an evaluation (train.evaluate's on_step)."""
         self.console.show_eval(self.frame, episode, t, self.untrained(), self.next_eval())
 
-    def end_eval(self, episodes, learned_iou=None) -> bool:
-        """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True); none for an evaluation
-        that a SIGTERM cut short (False): the resumed run evaluates again. learned_iou: the learned masks' IoU over
-        its frames (--mask-source learned:)."""
-        c, frame, watch = self.counters, self.frame, self.watch
+    def end_eval(self, watch: EvalWatch, episodes, learned_iou=None) -> bool:
+        """An eval.csv row (and TensorBoard scalars) for train.evaluate()'s episodes (True), with what start_eval's
+        `watch` saw; none for an evaluation that a SIGTERM cut short (False): the resumed run evaluates again.
+        learned_iou: the learned masks' IoU over its frames (--mask-source learned:)."""
+        c, frame = self.counters, self.frame
         scores = watch.finish()
-        self.watch = None
         seconds = self.console.end_eval(frame, len(episodes))
         if len(episodes) < self.console.eval_episodes:
             self.cut = (f"; its evaluation stopped after {len(episodes)} of "
