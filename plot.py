@@ -324,7 +324,6 @@ def draw_panels(axes, panels: dict, texts: dict, baseline, references: dict) -> 
     dashed, entries, others = False, {}, {}
     for ax, (panel, curves) in zip(axes, panels.items()):
         for label, (frames, mean, ci, n, _env) in curves.items():
-            n = np.broadcast_to(np.asarray(n), np.shape(frames))  # runs per frame
             dashed |= draw_mean(ax, frames, mean, n == n.max(), colors[label], f"{label} (n={n.max()})")
             if n.max() > 1:
                 ax.fill_between(frames, ci[0], ci[1], color=colors[label], alpha=0.2, lw=0)
@@ -387,7 +386,6 @@ def summary_table(panels: dict, metric: str) -> str:
     lines = [f"| env | group | seeds | last frame | final {metric} (mean [95% CI]) |", "|---|---|---|---|---|"]
     for curves in panels.values():
         for label, (frames, mean, ci, n, env) in curves.items():
-            n = np.broadcast_to(np.asarray(n), np.shape(frames))
             seeds = f"{n.max()}" + (f" ({n[-1]} at the last frame)" if n[-1] < n.max() else "")
             final = f"{mean[-1]:.4g}" + ("" if n[-1] == 1 else f" [{ci[0][-1]:.4g}, {ci[1][-1]:.4g}]")
             lines.append(f"| {env} | {label} | {seeds} | {frames[-1]:.0f} | {final} |")

@@ -1108,7 +1108,7 @@ def across_tasks(norm: dict, envs: list[str], variants: list[str]) -> tuple[dict
     lines, rows = {}, []
     for v, (seeds, frames, _) in shared.items():
         f, runs = len(frames), f"{cli.plural(len(seeds), 'seed')} x {cli.plural(len(envs), 'task')}"
-        lines[v] = (frames, point[v][:f], ci[v][:, :f], len(seeds), f"over {cli.plural(len(envs), 'task')}")
+        lines[v] = (frames, point[v][:f], ci[v][:, :f], np.full(f, len(seeds)), f"over {cli.plural(len(envs), 'task')}")
         iqm, mean = (f"{point[v][i]:.3f} [{ci[v][0, i]:.3f}, {ci[v][1, i]:.3f}]" for i in (f - 1, 2 * f - 1))
         rows.append(f"| {v} | {runs} | {frames[-1]:.0f} | {iqm} | {mean} |")
     return lines, rows
