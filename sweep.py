@@ -627,9 +627,8 @@ def status_table(out: str, specs: list[JobSpec]) -> str:
         d = os.path.join(out, spec.sweep, spec.name)
         (state, note), runs = job_state(d), run_dirs(d)
         frame = "0" if runs else "-"
-        with contextlib.suppress(OSError, KeyError, IndexError):
-            with open(os.path.join(runs[-1], "train.csv"), newline="") as f:
-                frame = list(csv.DictReader(f))[-1]["frame"]
+        with contextlib.suppress(OSError, KeyError, IndexError, plot.PlotError):
+            frame = plot.read_csv(os.path.join(runs[-1], "train.csv"), "train")[1][-1]["frame"]
         counts[state] += 1
         rows.append((spec.name, state, f"{frame}/{spec.frames}", note))
     widths = [max(len(r[i]) for r in rows) for i in range(3)]
