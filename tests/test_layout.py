@@ -294,7 +294,7 @@ def test_the_loop_evaluates_at_one_site_and_stops_at_one_point():
 # The harness: the command line, the run directory, the seeds' group and envs, the speed layer
 # (harness/*.py), the sweeps and the plots. Documents: docs/*.md, counted as `wc -w` counts. The
 # harness is held at its length (the aim: 4,500 lines); the documents at their aim.
-HARNESS_LINES, DOCS_WORDS = 5_757, 25_000
+HARNESS_LINES, DOCS_WORDS = 5_732, 25_000
 COMPLEX, MOST_COMPLEX, MOST_COMPLEX_FUNCTIONS = 11, 20, 45  # radon's C starts at 11, its D at 21
 
 
